@@ -1,0 +1,410 @@
+//! The sparse-convolution compute op, as a burn backend extension with its own backward pass.
+//!
+//! `SparseConvBackend` has a portable default implementation built from burn tensor ops (select, matmul,
+//! select_add) that runs on every backend (CUDA included). The `NdArray` backend overrides it with the
+//! blocked host GEMM of [`crate::host`], and `Autodiff<B>` wraps either with an explicit backward pass:
+//! `dx = conv(dy, w, map^T, transposed weight)` and `dw = weight_grad(x, dy, map)`.
+
+use crate::host::{self, HostFloat, WeightView};
+use crate::kernel_map::KernelMap;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::NodeId;
+use burn::backend::Autodiff;
+use burn::prelude::*;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{DType, TensorData, TensorMetadata, TensorPrimitive};
+use std::sync::Arc;
+
+fn wrap<B: Backend, const D: usize>(p: FloatTensor<B>) -> Tensor<B, D> {
+    Tensor::from_primitive(TensorPrimitive::Float(p))
+}
+
+fn unwrap<B: Backend, const D: usize>(t: Tensor<B, D>) -> FloatTensor<B> {
+    t.into_primitive().tensor()
+}
+
+/// Index tensor on a device from host row indices.
+pub fn index_tensor<B: Backend>(idx: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
+    let v: Vec<i64> = idx.iter().map(|&i| i as i64).collect();
+    Tensor::from_data(TensorData::new(v, [idx.len()]), device)
+}
+
+/// Portable forward: per kernel offset, gather rows, multiply by the offset's weight slice, index-add.
+pub fn conv_forward_portable<B: Backend>(
+    x: Tensor<B, 2>,
+    w: Tensor<B, 3>,
+    map: &KernelMap,
+    transposed: bool,
+) -> Tensor<B, 2> {
+    let device = x.device();
+    let [d0, kv, d2] = w.dims();
+    let cout = if transposed { d2 } else { d0 };
+    let mut y = Tensor::<B, 2>::zeros([map.n_out(), cout], &device);
+    for k in 0..kv {
+        let (ins, outs) = map.pairs(k);
+        if ins.is_empty() {
+            continue;
+        }
+        let wk = w.clone().slice([0..d0, k..k + 1, 0..d2]).reshape([d0, d2]);
+        let wk = if transposed { wk } else { wk.transpose() }; // [cin, cout]
+        let g = x.clone().select(0, index_tensor::<B>(ins, &device));
+        y = y.select_assign(
+            0,
+            index_tensor::<B>(outs, &device),
+            g.matmul(wk),
+            burn::tensor::IndexingUpdateOp::Add,
+        );
+    }
+    y
+}
+
+/// Portable weight gradient, `[d0, K, d2]`.
+pub fn conv_weight_grad_portable<B: Backend>(
+    x: Tensor<B, 2>,
+    dy: Tensor<B, 2>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> Tensor<B, 3> {
+    let device = x.device();
+    let [d0, kv, d2] = wshape;
+    let mut slices = Vec::with_capacity(kv);
+    for k in 0..kv {
+        let (ins, outs) = map.pairs(k);
+        if ins.is_empty() {
+            slices.push(Tensor::<B, 3>::zeros([d0, 1, d2], &device));
+            continue;
+        }
+        let gx = x.clone().select(0, index_tensor::<B>(ins, &device));
+        let gy = dy.clone().select(0, index_tensor::<B>(outs, &device));
+        let s = if transposed {
+            gx.transpose().matmul(gy)
+        } else {
+            gy.transpose().matmul(gx)
+        };
+        slices.push(s.reshape([d0, 1, d2]));
+    }
+    Tensor::cat(slices, 1)
+}
+
+/// Backends that can run sparse convolution.
+///
+/// Weight `w` is `[D0, K, D2]` (the layer's `[Cout, kx, ky, kz, Cin]` flattened); see
+/// [`host::WeightView`] for the meaning of `transposed`.
+pub trait SparseConvBackend: Backend {
+    /// `y[o] += W_k x[i]` over the pairs of `map`.
+    ///
+    /// # Shapes
+    /// - x: `[map.n_in(), cin]`, w: `[D0, K, D2]` -> `[map.n_out(), cout]`
+    fn sparse_conv(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        unwrap(conv_forward_portable::<Self>(
+            wrap(x),
+            wrap(w),
+            &map,
+            transposed,
+        ))
+    }
+
+    /// Gradient of [`SparseConvBackend::sparse_conv`] with respect to the weight.
+    ///
+    /// # Shapes
+    /// - x: `[n_in, cin]`, dy: `[n_out, cout]` -> `[D0, K, D2]`
+    fn sparse_conv_weight_grad(
+        x: FloatTensor<Self>,
+        dy: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        wshape: [usize; 3],
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        unwrap(conv_weight_grad_portable::<Self>(
+            wrap(x),
+            wrap(dy),
+            &map,
+            wshape,
+            transposed,
+        ))
+    }
+}
+
+fn host_forward<B: Backend>(
+    x: FloatTensor<B>,
+    w: FloatTensor<B>,
+    map: &KernelMap,
+    transposed: bool,
+) -> FloatTensor<B> {
+    let xt: Tensor<B, 2> = wrap(x);
+    let wt: Tensor<B, 3> = wrap(w);
+    let device = xt.device();
+    let [d0, k, d2] = wt.dims();
+    let wv = WeightView {
+        d0,
+        k,
+        d2,
+        transposed,
+    };
+    let cout = if transposed { d2 } else { d0 };
+    let xd = xt.into_data();
+    let wd = wt.into_data();
+    let data = match (xd.dtype, wd.dtype) {
+        (DType::F32, DType::F32) => run_fwd::<f32>(&xd, &wd, wv, map, cout),
+        (DType::F64, DType::F64) => run_fwd::<f64>(&xd, &wd, wv, map, cout),
+        _ => {
+            return unwrap(conv_forward_portable::<B>(
+                Tensor::from_data(xd, &device),
+                Tensor::from_data(wd, &device),
+                map,
+                transposed,
+            ))
+        }
+    };
+    unwrap(Tensor::<B, 2>::from_data(data, &device))
+}
+
+fn run_fwd<F: HostFloat + burn::tensor::Element>(
+    xd: &TensorData,
+    wd: &TensorData,
+    wv: WeightView,
+    map: &KernelMap,
+    cout: usize,
+) -> TensorData {
+    let x = xd.as_slice::<F>().expect("dtype checked");
+    let w = wd.as_slice::<F>().expect("dtype checked");
+    TensorData::new(host::conv_forward(x, w, wv, map), [map.n_out(), cout])
+}
+
+fn host_weight_grad<B: Backend>(
+    x: FloatTensor<B>,
+    dy: FloatTensor<B>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> FloatTensor<B> {
+    let xt: Tensor<B, 2> = wrap(x);
+    let dyt: Tensor<B, 2> = wrap(dy);
+    let device = xt.device();
+    let wv = WeightView {
+        d0: wshape[0],
+        k: wshape[1],
+        d2: wshape[2],
+        transposed,
+    };
+    let xd = xt.into_data();
+    let dd = dyt.into_data();
+    let data = match (xd.dtype, dd.dtype) {
+        (DType::F32, DType::F32) => TensorData::new(
+            host::conv_weight_grad::<f32>(
+                xd.as_slice().expect("dtype checked"),
+                dd.as_slice().expect("dtype checked"),
+                wv,
+                map,
+            ),
+            wshape,
+        ),
+        (DType::F64, DType::F64) => TensorData::new(
+            host::conv_weight_grad::<f64>(
+                xd.as_slice().expect("dtype checked"),
+                dd.as_slice().expect("dtype checked"),
+                wv,
+                map,
+            ),
+            wshape,
+        ),
+        _ => {
+            return unwrap(conv_weight_grad_portable::<B>(
+                Tensor::from_data(xd, &device),
+                Tensor::from_data(dd, &device),
+                map,
+                wshape,
+                transposed,
+            ))
+        }
+    };
+    unwrap(Tensor::<B, 3>::from_data(data, &device))
+}
+
+/// Zero-copy access to the host buffers of the `NdArray` backend.
+mod nd {
+
+    use burn::backend::ndarray::NdArrayTensor;
+    use ndarray::{ArcArray, IxDyn};
+
+    pub(super) enum Host<'a> {
+        F32(std::borrow::Cow<'a, [f32]>),
+        F64(std::borrow::Cow<'a, [f64]>),
+    }
+
+    fn slice<E: Clone>(v: ndarray::ArrayView<'_, E, IxDyn>) -> std::borrow::Cow<'_, [E]> {
+        match v.to_slice() {
+            Some(s) => std::borrow::Cow::Borrowed(s),
+            None => std::borrow::Cow::Owned(v.iter().cloned().collect()),
+        }
+    }
+
+    pub(super) fn host(t: &NdArrayTensor) -> Option<Host<'_>> {
+        match t {
+            NdArrayTensor::F32(s) => Some(Host::F32(slice(s.view()))),
+            NdArrayTensor::F64(s) => Some(Host::F64(slice(s.view()))),
+            _ => None,
+        }
+    }
+
+    pub(super) fn tensor<E>(v: Vec<E>, shape: &[usize]) -> NdArrayTensor
+    where
+        NdArrayTensor: From<ArcArray<E, IxDyn>>,
+    {
+        let a = ArcArray::from_shape_vec(IxDyn(shape), v).expect("length matches shape");
+        NdArrayTensor::from(a)
+    }
+}
+
+impl<E, I, Q> SparseConvBackend for burn::backend::NdArray<E, I, Q>
+where
+    E: burn::backend::ndarray::FloatNdArrayElement,
+    I: burn::backend::ndarray::IntNdArrayElement,
+    Q: burn::backend::ndarray::QuantElement,
+    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<E>>,
+    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<I>>,
+{
+    fn sparse_conv(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        let ws = w.shape();
+        let wv = WeightView {
+            d0: ws[0],
+            k: ws[1],
+            d2: ws[2],
+            transposed,
+        };
+        let cout = if transposed { ws[2] } else { ws[0] };
+        let shape = [map.n_out(), cout];
+        match (nd::host(&x), nd::host(&w)) {
+            (Some(nd::Host::F32(xs)), Some(nd::Host::F32(wsl))) => {
+                nd::tensor(host::conv_forward::<f32>(&xs, &wsl, wv, &map), &shape)
+            }
+            (Some(nd::Host::F64(xs)), Some(nd::Host::F64(wsl))) => {
+                nd::tensor(host::conv_forward::<f64>(&xs, &wsl, wv, &map), &shape)
+            }
+            _ => host_forward::<Self>(x, w, &map, transposed),
+        }
+    }
+
+    fn sparse_conv_weight_grad(
+        x: FloatTensor<Self>,
+        dy: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        wshape: [usize; 3],
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        let wv = WeightView {
+            d0: wshape[0],
+            k: wshape[1],
+            d2: wshape[2],
+            transposed,
+        };
+        match (nd::host(&x), nd::host(&dy)) {
+            (Some(nd::Host::F32(xs)), Some(nd::Host::F32(ds))) => {
+                nd::tensor(host::conv_weight_grad::<f32>(&xs, &ds, wv, &map), &wshape)
+            }
+            (Some(nd::Host::F64(xs)), Some(nd::Host::F64(ds))) => {
+                nd::tensor(host::conv_weight_grad::<f64>(&xs, &ds, wv, &map), &wshape)
+            }
+            _ => host_weight_grad::<Self>(x, dy, &map, wshape, transposed),
+        }
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl SparseConvBackend for burn::backend::Cuda {}
+
+#[derive(Debug)]
+struct SparseConvBackwardOp;
+
+impl<B: SparseConvBackend> Backward<B, 2> for SparseConvBackwardOp {
+    type State = (NodeId, NodeId, Arc<KernelMap>, [usize; 3], bool);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let [node_x, node_w] = ops.parents;
+        let dy = grads.consume::<B>(&ops.node);
+        let (x_id, w_id, map, wshape, transposed) = ops.state;
+        let x: FloatTensor<B> = checkpointer.retrieve_node_output(x_id);
+        let w: FloatTensor<B> = checkpointer.retrieve_node_output(w_id);
+        if let Some(node) = node_w {
+            let dw = B::sparse_conv_weight_grad(x, dy.clone(), map.clone(), wshape, transposed);
+            grads.register::<B>(node.id, dw);
+        }
+        if let Some(node) = node_x {
+            let dx = B::sparse_conv(dy, w, map.transposed(), !transposed);
+            grads.register::<B>(node.id, dx);
+        }
+    }
+}
+
+impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
+    fn sparse_conv(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        let wshape: [usize; 3] = {
+            let s = burn::tensor::TensorMetadata::shape(&w.primitive);
+            [s[0], s[1], s[2]]
+        };
+        match SparseConvBackwardOp
+            .prepare::<C>([x.node.clone(), w.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(mut prep) => {
+                let x_id = prep.checkpoint(&x);
+                let w_id = prep.checkpoint(&w);
+                let out = B::sparse_conv(x.primitive, w.primitive, map.clone(), transposed);
+                prep.finish((x_id, w_id, map, wshape, transposed), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::sparse_conv(x.primitive, w.primitive, map, transposed))
+            }
+        }
+    }
+
+    fn sparse_conv_weight_grad(
+        x: FloatTensor<Self>,
+        dy: FloatTensor<Self>,
+        map: Arc<KernelMap>,
+        wshape: [usize; 3],
+        transposed: bool,
+    ) -> FloatTensor<Self> {
+        // Second-order gradients are not needed by any model here; the result is not tracked.
+        let x_inner = <Self as burn::tensor::backend::AutodiffBackend>::inner(x);
+        let dy_inner = <Self as burn::tensor::backend::AutodiffBackend>::inner(dy);
+        <Self as burn::tensor::backend::AutodiffBackend>::from_inner(B::sparse_conv_weight_grad(
+            x_inner, dy_inner, map, wshape, transposed,
+        ))
+    }
+}
+
+/// Tensor-level entry point: sparse convolution of row features with a `[D0, K, D2]` weight.
+pub fn sparse_conv<B: SparseConvBackend>(
+    x: Tensor<B, 2>,
+    w: Tensor<B, 3>,
+    map: Arc<KernelMap>,
+    transposed: bool,
+) -> Tensor<B, 2> {
+    wrap(B::sparse_conv(unwrap(x), unwrap(w), map, transposed))
+}

@@ -1,0 +1,385 @@
+//! Integer voxel coordinates kept on the host, with an open-addressing hash index.
+//!
+//! A coordinate is `(batch, x, y, z)`, in the order of the spatial shape and of the kernel dimensions
+//! (spconv convention, FACTS.md §6). Coordinates live on the host because every structural decision
+//! (kernel maps, unions, pruning) is integer work that GPUs gain little on at these sizes; features live on
+//! the burn device.
+
+use crate::error::{Result, SparseError};
+use crate::kernel_map::{ConvCacheEntry, KernelMapKey};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// One active site: `(batch, x, y, z)`.
+pub type Coord = [i32; 4];
+
+/// Largest supported extent of one spatial axis (coordinates are packed into 16 bits per axis).
+pub const MAX_AXIS_EXTENT: usize = 1 << 15;
+/// Largest supported batch size.
+pub const MAX_BATCH: usize = 1 << 15;
+
+/// Packs an in-range coordinate into a u64 whose integer order is the lexicographic (b, x, y, z) order.
+#[inline]
+pub fn pack(c: Coord) -> u64 {
+    ((c[0] as u64 & 0xFFFF) << 48)
+        | ((c[1] as u64 & 0xFFFF) << 32)
+        | ((c[2] as u64 & 0xFFFF) << 16)
+        | (c[3] as u64 & 0xFFFF)
+}
+
+/// Inverse of [`pack`].
+#[inline]
+pub fn unpack(k: u64) -> Coord {
+    [
+        ((k >> 48) & 0xFFFF) as i32,
+        ((k >> 32) & 0xFFFF) as i32,
+        ((k >> 16) & 0xFFFF) as i32,
+        (k & 0xFFFF) as i32,
+    ]
+}
+
+const EMPTY: u64 = u64::MAX;
+
+#[inline]
+fn mix(mut k: u64) -> u64 {
+    // fmix64 from MurmurHash3: cheap and spreads the packed coordinate bits well.
+    k ^= k >> 33;
+    k = k.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    k ^= k >> 33;
+    k = k.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    k ^= k >> 33;
+    k
+}
+
+/// Open-addressing (linear probing) hash map from packed coordinates to row indices.
+///
+/// Memory is linear in the number of active sites (load factor <= 1/2), never in the grid volume.
+#[derive(Clone, Debug)]
+pub struct CoordIndex {
+    keys: Vec<u64>,
+    vals: Vec<u32>,
+    mask: usize,
+    len: usize,
+}
+
+impl CoordIndex {
+    /// An empty index sized for `n` entries.
+    pub fn with_capacity(n: usize) -> Self {
+        let cap = (2 * n.max(8)).next_power_of_two();
+        Self {
+            keys: vec![EMPTY; cap],
+            vals: vec![0; cap],
+            mask: cap - 1,
+            len: 0,
+        }
+    }
+
+    /// Number of stored keys.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// True when no key is stored.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Inserts `key -> val`; returns the value already stored under `key` (and keeps it) if any.
+    pub fn insert(&mut self, key: u64, val: u32) -> Option<u32> {
+        if 2 * (self.len + 1) > self.keys.len() {
+            self.grow();
+        }
+        let mut slot = mix(key) as usize & self.mask;
+        loop {
+            let k = self.keys[slot];
+            if k == EMPTY {
+                self.keys[slot] = key;
+                self.vals[slot] = val;
+                self.len += 1;
+                return None;
+            }
+            if k == key {
+                return Some(self.vals[slot]);
+            }
+            slot = (slot + 1) & self.mask;
+        }
+    }
+
+    /// Looks a packed key up.
+    #[inline]
+    pub fn get(&self, key: u64) -> Option<u32> {
+        let mut slot = mix(key) as usize & self.mask;
+        loop {
+            let k = self.keys[slot];
+            if k == key {
+                return Some(self.vals[slot]);
+            }
+            if k == EMPTY {
+                return None;
+            }
+            slot = (slot + 1) & self.mask;
+        }
+    }
+
+    fn grow(&mut self) {
+        let old_keys = std::mem::take(&mut self.keys);
+        let old_vals = std::mem::take(&mut self.vals);
+        let cap = (old_keys.len() * 2).max(16);
+        self.keys = vec![EMPTY; cap];
+        self.vals = vec![0; cap];
+        self.mask = cap - 1;
+        self.len = 0;
+        for (k, v) in old_keys.into_iter().zip(old_vals) {
+            if k != EMPTY {
+                self.insert(k, v);
+            }
+        }
+    }
+}
+
+static NEXT_ID: AtomicU64 = AtomicU64::new(1);
+
+/// A set of active sites with its hash index, spatial shape, batch size and tensor stride.
+///
+/// Kernel maps whose input is this set are cached inside it under a typed [`KernelMapKey`], so layers that
+/// share a geometry on the same coordinates build the map once (like spconv's `indice_key`, but typed).
+/// A set produced by a strided convolution remembers its parent set and map, which is how an inverse
+/// convolution restores the parent coordinates.
+pub struct CoordSet {
+    coords: Vec<Coord>,
+    index: CoordIndex,
+    spatial_shape: [usize; 3],
+    batch_size: usize,
+    tensor_stride: [usize; 3],
+    id: u64,
+    pub(crate) cache: Mutex<HashMap<KernelMapKey, ConvCacheEntry>>,
+    pub(crate) parents: Mutex<Vec<crate::kernel_map::ParentLink>>,
+}
+
+impl std::fmt::Debug for CoordSet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CoordSet")
+            .field("id", &self.id)
+            .field("len", &self.coords.len())
+            .field("spatial_shape", &self.spatial_shape)
+            .field("batch_size", &self.batch_size)
+            .field("tensor_stride", &self.tensor_stride)
+            .finish()
+    }
+}
+
+impl CoordSet {
+    /// Validates and indexes a coordinate list.
+    ///
+    /// Errors: a coordinate outside `[0, batch_size) x [0, spatial_shape)`, a duplicate, or a shape beyond
+    /// [`MAX_AXIS_EXTENT`] / [`MAX_BATCH`].
+    pub fn new(coords: Vec<Coord>, spatial_shape: [usize; 3], batch_size: usize) -> Result<Self> {
+        Self::with_stride(coords, spatial_shape, batch_size, [1, 1, 1])
+    }
+
+    /// Like [`CoordSet::new`] with an explicit tensor stride (the voxel size relative to the finest grid).
+    pub fn with_stride(
+        coords: Vec<Coord>,
+        spatial_shape: [usize; 3],
+        batch_size: usize,
+        tensor_stride: [usize; 3],
+    ) -> Result<Self> {
+        if spatial_shape.iter().any(|&s| s == 0 || s > MAX_AXIS_EXTENT) {
+            return Err(SparseError::Config(format!(
+                "spatial shape {spatial_shape:?}: each axis must be in 1..={MAX_AXIS_EXTENT}"
+            )));
+        }
+        if batch_size == 0 || batch_size > MAX_BATCH {
+            return Err(SparseError::Config(format!(
+                "batch size {batch_size}: must be in 1..={MAX_BATCH}"
+            )));
+        }
+        if coords.len() > u32::MAX as usize {
+            return Err(SparseError::Config("more than 2^32 active sites".into()));
+        }
+        let mut index = CoordIndex::with_capacity(coords.len());
+        for (row, &c) in coords.iter().enumerate() {
+            let in_range = c[0] >= 0
+                && (c[0] as usize) < batch_size
+                && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < spatial_shape[a]);
+            if !in_range {
+                return Err(SparseError::OutOfRange {
+                    row,
+                    coord: c,
+                    shape: spatial_shape,
+                    batch_size,
+                });
+            }
+            if let Some(first) = index.insert(pack(c), row as u32) {
+                return Err(SparseError::Duplicate {
+                    coord: c,
+                    first: first as usize,
+                    second: row,
+                });
+            }
+        }
+        Ok(Self::from_trusted(
+            coords,
+            index,
+            spatial_shape,
+            batch_size,
+            tensor_stride,
+        ))
+    }
+
+    /// Builds a set from coordinates already known to be valid and unique (internal constructors).
+    pub(crate) fn from_trusted(
+        coords: Vec<Coord>,
+        index: CoordIndex,
+        spatial_shape: [usize; 3],
+        batch_size: usize,
+        tensor_stride: [usize; 3],
+    ) -> Self {
+        Self {
+            coords,
+            index,
+            spatial_shape,
+            batch_size,
+            tensor_stride,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            cache: Mutex::new(HashMap::new()),
+            parents: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// Builds a set from valid unique coordinates, indexing them.
+    pub(crate) fn from_valid_unique(
+        coords: Vec<Coord>,
+        spatial_shape: [usize; 3],
+        batch_size: usize,
+        tensor_stride: [usize; 3],
+    ) -> Self {
+        let mut index = CoordIndex::with_capacity(coords.len());
+        for (row, &c) in coords.iter().enumerate() {
+            index.insert(pack(c), row as u32);
+        }
+        Self::from_trusted(coords, index, spatial_shape, batch_size, tensor_stride)
+    }
+
+    /// The coordinates, row `i` belonging to feature row `i`.
+    pub fn coords(&self) -> &[Coord] {
+        &self.coords
+    }
+    /// Number of active sites.
+    pub fn len(&self) -> usize {
+        self.coords.len()
+    }
+    /// True when there is no active site.
+    pub fn is_empty(&self) -> bool {
+        self.coords.is_empty()
+    }
+    /// Spatial shape (x, y, z).
+    pub fn spatial_shape(&self) -> [usize; 3] {
+        self.spatial_shape
+    }
+    /// Batch size.
+    pub fn batch_size(&self) -> usize {
+        self.batch_size
+    }
+    /// Tensor stride: how many finest-grid voxels one voxel of this set spans per axis.
+    pub fn tensor_stride(&self) -> [usize; 3] {
+        self.tensor_stride
+    }
+    /// A process-unique id (identity, not content).
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+    /// The hash index.
+    pub fn index(&self) -> &CoordIndex {
+        &self.index
+    }
+    /// Row of a coordinate, if active. Out-of-range coordinates are simply absent.
+    #[inline]
+    pub fn find(&self, c: Coord) -> Option<usize> {
+        let in_range = c[0] >= 0
+            && (c[0] as usize) < self.batch_size
+            && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < self.spatial_shape[a]);
+        if !in_range {
+            return None;
+        }
+        self.index.get(pack(c)).map(|r| r as usize)
+    }
+    /// Permutation that sorts the rows by (b, x, y, z).
+    pub fn sorted_order(&self) -> Vec<usize> {
+        let mut order: Vec<usize> = (0..self.coords.len()).collect();
+        order.sort_unstable_by_key(|&i| pack(self.coords[i]));
+        order
+    }
+    /// Row-major linear index of each site in a dense `[B, X, Y, Z]` grid.
+    pub fn linear_indices(&self) -> Vec<usize> {
+        let [sx, sy, sz] = self.spatial_shape;
+        self.coords
+            .iter()
+            .map(|c| {
+                ((c[0] as usize * sx + c[1] as usize) * sy + c[2] as usize) * sz + c[3] as usize
+            })
+            .collect()
+    }
+}
+
+/// Sorts and deduplicates packed keys and returns the coordinates (internal helper).
+pub(crate) fn unique_sorted(mut keys: Vec<u64>) -> Vec<Coord> {
+    keys.sort_unstable();
+    keys.dedup();
+    keys.into_iter().map(unpack).collect()
+}
+
+/// Shared handle.
+pub type CoordSetRef = Arc<CoordSet>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pack_order_is_lexicographic() {
+        let a = [0, 5, 1, 9];
+        let b = [0, 5, 2, 0];
+        let c = [1, 0, 0, 0];
+        assert!(pack(a) < pack(b) && pack(b) < pack(c));
+        assert_eq!(unpack(pack([3, 17, 300, 31])), [3, 17, 300, 31]);
+    }
+
+    #[test]
+    fn index_insert_get_grow() {
+        let mut idx = CoordIndex::with_capacity(2);
+        for i in 0..1000u32 {
+            assert_eq!(
+                idx.insert(pack([0, i as i32, 2 * i as i32 % 97, 3]), i),
+                None
+            );
+        }
+        assert_eq!(idx.len(), 1000);
+        for i in 0..1000u32 {
+            assert_eq!(idx.get(pack([0, i as i32, 2 * i as i32 % 97, 3])), Some(i));
+        }
+        assert_eq!(idx.get(pack([1, 0, 0, 0])), None);
+        assert_eq!(idx.insert(pack([0, 0, 0, 3]), 7), Some(0));
+    }
+
+    #[test]
+    fn coordset_rejects_bad_input() {
+        let e = CoordSet::new(vec![[0, 1, 1, 1], [0, 4, 0, 0]], [4, 4, 4], 1).unwrap_err();
+        assert!(matches!(e, SparseError::OutOfRange { row: 1, .. }));
+        let e = CoordSet::new(vec![[0, 1, 1, 1], [0, 1, 1, 1]], [4, 4, 4], 1).unwrap_err();
+        assert!(matches!(
+            e,
+            SparseError::Duplicate {
+                first: 0,
+                second: 1,
+                ..
+            }
+        ));
+        let e = CoordSet::new(vec![[1, 1, 1, 1]], [4, 4, 4], 1).unwrap_err();
+        assert!(matches!(e, SparseError::OutOfRange { .. }));
+        let e = CoordSet::new(vec![[0, -1, 1, 1]], [4, 4, 4], 1).unwrap_err();
+        assert!(matches!(e, SparseError::OutOfRange { .. }));
+        assert!(CoordSet::new(vec![], [0, 4, 4], 1).is_err());
+    }
+}

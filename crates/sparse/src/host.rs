@@ -1,0 +1,299 @@
+//! Host (CPU) compute of sparse convolution: blocked gather -> GEMM -> scatter.
+//!
+//! Output rows are split into blocks processed in parallel (rayon); each block owns its output rows, so
+//! there is no write conflict and no atomics. Inside a block, for every kernel offset, the input rows
+//! paired with the block's outputs are gathered into a contiguous buffer, multiplied by that offset's
+//! weight slice with `matrixmultiply`'s GEMM, and added into the block. The weight is read in place
+//! through strides (no transposed copy).
+
+use crate::kernel_map::KernelMap;
+use rayon::prelude::*;
+
+/// Float types the host path computes in.
+pub trait HostFloat: Copy + Send + Sync + Default + std::ops::AddAssign + 'static {
+    /// `C = alpha * A B + beta * C` with arbitrary strides.
+    ///
+    /// # Safety
+    /// Pointers and strides must describe valid `m x k`, `k x n`, `m x n` matrices.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn gemm(
+        m: usize,
+        k: usize,
+        n: usize,
+        a: *const Self,
+        rsa: isize,
+        csa: isize,
+        b: *const Self,
+        rsb: isize,
+        csb: isize,
+        beta: Self,
+        c: *mut Self,
+        rsc: isize,
+        csc: isize,
+    );
+    /// Additive identity.
+    fn zero() -> Self;
+    /// Multiplicative identity.
+    fn one() -> Self;
+}
+
+impl HostFloat for f32 {
+    unsafe fn gemm(
+        m: usize,
+        k: usize,
+        n: usize,
+        a: *const f32,
+        rsa: isize,
+        csa: isize,
+        b: *const f32,
+        rsb: isize,
+        csb: isize,
+        beta: f32,
+        c: *mut f32,
+        rsc: isize,
+        csc: isize,
+    ) {
+        matrixmultiply::sgemm(m, k, n, 1.0, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+    }
+    fn zero() -> Self {
+        0.0
+    }
+    fn one() -> Self {
+        1.0
+    }
+}
+
+impl HostFloat for f64 {
+    unsafe fn gemm(
+        m: usize,
+        k: usize,
+        n: usize,
+        a: *const f64,
+        rsa: isize,
+        csa: isize,
+        b: *const f64,
+        rsb: isize,
+        csb: isize,
+        beta: f64,
+        c: *mut f64,
+        rsc: isize,
+        csc: isize,
+    ) {
+        matrixmultiply::dgemm(m, k, n, 1.0, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+    }
+    fn zero() -> Self {
+        0.0
+    }
+    fn one() -> Self {
+        1.0
+    }
+}
+
+/// How the weight `[D0, K, D2]` is applied.
+///
+/// * `transposed == false`: `y[o, d0] += sum_d2 x[i, d2] * w[d0, k, d2]` (x has D2 channels, y has D0).
+/// * `transposed == true`:  `y[o, d2] += sum_d0 x[i, d0] * w[d0, k, d2]` (x has D0 channels, y has D2).
+#[derive(Clone, Copy, Debug)]
+pub struct WeightView {
+    /// First weight dimension.
+    pub d0: usize,
+    /// Kernel volume.
+    pub k: usize,
+    /// Last weight dimension.
+    pub d2: usize,
+    /// Apply the transposed slices.
+    pub transposed: bool,
+}
+
+impl WeightView {
+    fn cin(&self) -> usize {
+        if self.transposed {
+            self.d0
+        } else {
+            self.d2
+        }
+    }
+    fn cout(&self) -> usize {
+        if self.transposed {
+            self.d2
+        } else {
+            self.d0
+        }
+    }
+    /// Pointer offset and (row, col) strides of offset `k`'s `[cin, cout]` matrix.
+    fn slice(&self, k: usize) -> (usize, isize, isize) {
+        let s0 = (self.k * self.d2) as isize; // stride of d0
+        let s2 = 1isize; // stride of d2
+        let base = k * self.d2;
+        if self.transposed {
+            (base, s0, s2) // rows over d0 (cin), cols over d2 (cout)
+        } else {
+            (base, s2, s0) // rows over d2 (cin), cols over d0 (cout)
+        }
+    }
+}
+
+fn block_rows(n_out: usize, cout: usize) -> usize {
+    // Enough blocks for load balance, blocks big enough for efficient GEMMs, block output in L2.
+    let by_cache = (256 * 1024 / 4 / cout.max(1)).max(64);
+    let by_balance = n_out
+        .div_ceil(4 * rayon::current_num_threads().max(1))
+        .max(64);
+    by_cache.min(by_balance).min(1024)
+}
+
+/// `y = conv(x, w)` over `map` on the host. `x` is `[n_in, cin]` row-major; returns `[n_out, cout]`.
+pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &KernelMap) -> Vec<F> {
+    let (cin, cout) = (wv.cin(), wv.cout());
+    let n_out = map.n_out();
+    let mut y = vec![F::zero(); n_out * cout];
+    if n_out == 0 || cout == 0 {
+        return y;
+    }
+    let rows = block_rows(n_out, cout);
+    y.par_chunks_mut(rows * cout).enumerate().for_each_init(
+        || (Vec::<F>::new(), Vec::<F>::new()),
+        |(gbuf, tbuf), (bi, yblock)| {
+            let o0 = (bi * rows) as u32;
+            let o1 = o0 + (yblock.len() / cout) as u32;
+            for k in 0..map.kernel_volume() {
+                let (ins, outs) = map.pairs(k);
+                let lo = outs.partition_point(|&o| o < o0);
+                let hi = outs.partition_point(|&o| o < o1);
+                let m = hi - lo;
+                if m == 0 {
+                    continue;
+                }
+                let (woff, rsb, csb) = wv.slice(k);
+                let ins = &ins[lo..hi];
+                let outs = &outs[lo..hi];
+                // Identity pairs (centre of a submanifold kernel): multiply straight into the block.
+                let identity = m == (o1 - o0) as usize
+                    && ins[0] == o0
+                    && ins[m - 1] == o1 - 1
+                    && outs[0] == o0
+                    && ins.iter().zip(outs).all(|(a, b)| a == b);
+                if identity {
+                    unsafe {
+                        F::gemm(
+                            m,
+                            cin,
+                            cout,
+                            x.as_ptr().add(o0 as usize * cin),
+                            cin as isize,
+                            1,
+                            w.as_ptr().add(woff),
+                            rsb,
+                            csb,
+                            F::one(),
+                            yblock.as_mut_ptr(),
+                            cout as isize,
+                            1,
+                        );
+                    }
+                    continue;
+                }
+                gbuf.clear();
+                gbuf.reserve(m * cin);
+                for &i in ins {
+                    let i = i as usize * cin;
+                    gbuf.extend_from_slice(&x[i..i + cin]);
+                }
+                tbuf.clear();
+                tbuf.resize(m * cout, F::zero());
+                unsafe {
+                    F::gemm(
+                        m,
+                        cin,
+                        cout,
+                        gbuf.as_ptr(),
+                        cin as isize,
+                        1,
+                        w.as_ptr().add(woff),
+                        rsb,
+                        csb,
+                        F::zero(),
+                        tbuf.as_mut_ptr(),
+                        cout as isize,
+                        1,
+                    );
+                }
+                for (j, &o) in outs.iter().enumerate() {
+                    let dst = &mut yblock[(o - o0) as usize * cout..][..cout];
+                    let src = &tbuf[j * cout..][..cout];
+                    for (d, s) in dst.iter_mut().zip(src) {
+                        *d += *s;
+                    }
+                }
+            }
+        },
+    );
+    y
+}
+
+/// Weight gradient: `dw[d0, k, d2] = sum over pairs (i, o) of offset k` of
+/// `dy[o, d0] * x[i, d2]` (not transposed) or `x[i, d0] * dy[o, d2]` (transposed).
+pub fn conv_weight_grad<F: HostFloat>(
+    x: &[F],
+    dy: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+) -> Vec<F> {
+    let (cin, cout) = (wv.cin(), wv.cout());
+    const CH: usize = 4096;
+    let per_k: Vec<Vec<F>> = (0..wv.k)
+        .into_par_iter()
+        .map(|k| {
+            // acc is [cout, cin] when not transposed (d0 = cout), [cin, cout] when transposed (d0 = cin):
+            // always [d0, d2].
+            let mut acc = vec![F::zero(); wv.d0 * wv.d2];
+            let (ins, outs) = map.pairs(k);
+            let mut gx = Vec::<F>::new();
+            let mut gy = Vec::<F>::new();
+            for (ic, oc) in ins.chunks(CH).zip(outs.chunks(CH)) {
+                let m = ic.len();
+                gx.clear();
+                gy.clear();
+                for &i in ic {
+                    let i = i as usize * cin;
+                    gx.extend_from_slice(&x[i..i + cin]);
+                }
+                for &o in oc {
+                    let o = o as usize * cout;
+                    gy.extend_from_slice(&dy[o..o + cout]);
+                }
+                // (first)^T (second), first has d0 columns, second has d2 columns.
+                let (first, c0, second, c2) = if wv.transposed {
+                    (&gx, cin, &gy, cout)
+                } else {
+                    (&gy, cout, &gx, cin)
+                };
+                unsafe {
+                    F::gemm(
+                        c0,
+                        m,
+                        c2,
+                        first.as_ptr(),
+                        1,
+                        c0 as isize,
+                        second.as_ptr(),
+                        c2 as isize,
+                        1,
+                        F::one(),
+                        acc.as_mut_ptr(),
+                        c2 as isize,
+                        1,
+                    );
+                }
+            }
+            acc
+        })
+        .collect();
+    let mut dw = vec![F::zero(); wv.d0 * wv.k * wv.d2];
+    for (k, acc) in per_k.into_iter().enumerate() {
+        for a in 0..wv.d0 {
+            dw[(a * wv.k + k) * wv.d2..][..wv.d2].copy_from_slice(&acc[a * wv.d2..][..wv.d2]);
+        }
+    }
+    dw
+}

@@ -1,0 +1,569 @@
+//! Kernel maps (rulebooks): for every kernel offset, the (input row, output row) pairs it connects.
+//!
+//! Building a map is integer work on the host and is kept apart from the feature compute
+//! ([`crate::backend`]), as in spconv and torchsparse. Maps are cached inside the input [`CoordSet`] under a
+//! typed [`KernelMapKey`].
+//!
+//! Offsets are numbered `k = (kx * KY + ky) * KZ + kz`, matching weights `[Cout, kx, ky, kz, Cin]` seen as
+//! `[Cout, K, Cin]`. The arithmetic is cross-correlation, as in spconv and torch (FACTS.md §6):
+//! a regular/submanifold convolution connects output `o` to input `i = o * stride - padding + k * dilation`;
+//! a transposed convolution connects input `i` to output `o = i * stride - padding + k * dilation`.
+
+use crate::coords::{pack, unique_sorted, Coord, CoordSet};
+use crate::error::{Result, SparseError};
+use rayon::prelude::*;
+use std::sync::{Arc, OnceLock, Weak};
+use std::time::Instant;
+
+/// Kernel size, stride, padding and dilation of a convolution or pooling, per axis (x, y, z).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ConvGeometry {
+    /// Kernel extent per axis.
+    pub kernel: [usize; 3],
+    /// Stride per axis.
+    pub stride: [usize; 3],
+    /// Zero padding per axis.
+    pub padding: [usize; 3],
+    /// Dilation per axis.
+    pub dilation: [usize; 3],
+}
+
+impl ConvGeometry {
+    /// Stride 1, no padding, no dilation.
+    pub fn new(kernel: [usize; 3]) -> Self {
+        Self {
+            kernel,
+            stride: [1; 3],
+            padding: [0; 3],
+            dilation: [1; 3],
+        }
+    }
+    /// Sets the stride.
+    pub fn with_stride(mut self, stride: [usize; 3]) -> Self {
+        self.stride = stride;
+        self
+    }
+    /// Sets the padding.
+    pub fn with_padding(mut self, padding: [usize; 3]) -> Self {
+        self.padding = padding;
+        self
+    }
+    /// Sets the dilation.
+    pub fn with_dilation(mut self, dilation: [usize; 3]) -> Self {
+        self.dilation = dilation;
+        self
+    }
+    /// Number of kernel offsets.
+    pub fn volume(&self) -> usize {
+        self.kernel.iter().product()
+    }
+    /// The kernel offsets `[kx, ky, kz]` in map order.
+    pub fn offsets(&self) -> Vec<[usize; 3]> {
+        let [a, b, c] = self.kernel;
+        let mut v = Vec::with_capacity(a * b * c);
+        for x in 0..a {
+            for y in 0..b {
+                for z in 0..c {
+                    v.push([x, y, z]);
+                }
+            }
+        }
+        v
+    }
+    fn validate(&self) -> Result<()> {
+        if self.kernel.contains(&0) || self.stride.contains(&0) || self.dilation.contains(&0) {
+            return Err(SparseError::Config(format!(
+                "kernel {:?}, stride {:?} and dilation {:?} must be positive",
+                self.kernel, self.stride, self.dilation
+            )));
+        }
+        Ok(())
+    }
+    /// Output spatial shape of a regular (strided) convolution: `floor((in + 2p - d(k-1) - 1)/s) + 1`.
+    pub fn regular_output_shape(&self, input: [usize; 3]) -> Result<[usize; 3]> {
+        self.validate()?;
+        let mut out = [0; 3];
+        for a in 0..3 {
+            let num = input[a] as i64 + 2 * self.padding[a] as i64
+                - self.dilation[a] as i64 * (self.kernel[a] as i64 - 1)
+                - 1;
+            if num < 0 {
+                return Err(SparseError::Config(format!(
+                    "kernel {:?} (dilation {:?}, padding {:?}) is larger than the input shape {:?}",
+                    self.kernel, self.dilation, self.padding, input
+                )));
+            }
+            out[a] = (num as usize) / self.stride[a] + 1;
+        }
+        Ok(out)
+    }
+    /// Output spatial shape of a transposed convolution: `(in-1)s - 2p + d(k-1) + 1 + output_padding`.
+    pub fn transposed_output_shape(
+        &self,
+        input: [usize; 3],
+        output_padding: [usize; 3],
+    ) -> Result<[usize; 3]> {
+        self.validate()?;
+        let mut out = [0; 3];
+        for a in 0..3 {
+            let v = (input[a] as i64 - 1) * self.stride[a] as i64 - 2 * self.padding[a] as i64
+                + self.dilation[a] as i64 * (self.kernel[a] as i64 - 1)
+                + 1
+                + output_padding[a] as i64;
+            if v <= 0 {
+                return Err(SparseError::Config(format!(
+                    "transposed convolution output shape would be empty on axis {a}"
+                )));
+            }
+            out[a] = v as usize;
+        }
+        Ok(out)
+    }
+}
+
+/// Which rule connects inputs and outputs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MapKind {
+    /// Outputs are the input sites; the kernel is centred (padding `(k/2)*d`, stride 1). Kernel must be odd.
+    Submanifold,
+    /// Every output reached by an active input; grows the active set at stride 1, downsamples when strided.
+    Regular,
+    /// Transposed convolution; upsamples.
+    Transposed {
+        /// Extra size added to one side of the output shape.
+        output_padding: [usize; 3],
+    },
+}
+
+/// Typed cache key of a kernel map (never a string).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct KernelMapKey {
+    /// The connection rule.
+    pub kind: MapKind,
+    /// Kernel, stride, padding, dilation.
+    pub geometry: ConvGeometry,
+    /// Tensor stride of the input set.
+    pub tensor_stride: [usize; 3],
+}
+
+/// The pairs of one convolution, grouped by kernel offset, sorted by output row inside each group.
+#[derive(Debug)]
+pub struct KernelMap {
+    kernel_volume: usize,
+    n_in: usize,
+    n_out: usize,
+    in_idx: Vec<u32>,
+    out_idx: Vec<u32>,
+    offset_start: Vec<usize>,
+    build_ms: f64,
+    transposed: OnceLock<Arc<KernelMap>>,
+}
+
+impl KernelMap {
+    /// Builds a map from explicit per-offset pair lists (each sorted by output row).
+    pub fn from_pairs(n_in: usize, n_out: usize, pairs: Vec<(Vec<u32>, Vec<u32>)>) -> Result<Self> {
+        let mut in_idx = Vec::new();
+        let mut out_idx = Vec::new();
+        let mut offset_start = vec![0];
+        for (ins, outs) in pairs {
+            if ins.len() != outs.len() {
+                return Err(SparseError::Shape("pair lists of different lengths".into()));
+            }
+            if ins.iter().any(|&i| i as usize >= n_in) || outs.iter().any(|&o| o as usize >= n_out)
+            {
+                return Err(SparseError::Shape("pair index out of range".into()));
+            }
+            if outs.windows(2).any(|w| w[0] > w[1]) {
+                return Err(SparseError::Shape(
+                    "pairs must be sorted by output row".into(),
+                ));
+            }
+            in_idx.extend_from_slice(&ins);
+            out_idx.extend_from_slice(&outs);
+            offset_start.push(in_idx.len());
+        }
+        Ok(Self {
+            kernel_volume: offset_start.len() - 1,
+            n_in,
+            n_out,
+            in_idx,
+            out_idx,
+            offset_start,
+            build_ms: 0.0,
+            transposed: OnceLock::new(),
+        })
+    }
+
+    /// Number of kernel offsets K.
+    pub fn kernel_volume(&self) -> usize {
+        self.kernel_volume
+    }
+    /// Number of input rows.
+    pub fn n_in(&self) -> usize {
+        self.n_in
+    }
+    /// Number of output rows.
+    pub fn n_out(&self) -> usize {
+        self.n_out
+    }
+    /// Total number of pairs.
+    pub fn num_pairs(&self) -> usize {
+        self.in_idx.len()
+    }
+    /// Milliseconds spent building this map (pairs only, excluding output-coordinate search).
+    pub fn build_ms(&self) -> f64 {
+        self.build_ms
+    }
+    /// The (input rows, output rows) of offset `k`.
+    pub fn pairs(&self, k: usize) -> (&[u32], &[u32]) {
+        let (a, b) = (self.offset_start[k], self.offset_start[k + 1]);
+        (&self.in_idx[a..b], &self.out_idx[a..b])
+    }
+    /// Number of neighbours (pairs) of every output row.
+    pub fn neighbour_counts(&self) -> Vec<u32> {
+        let mut c = vec![0u32; self.n_out];
+        for &o in &self.out_idx {
+            c[o as usize] += 1;
+        }
+        c
+    }
+    /// The map with inputs and outputs swapped (same offset numbering), sorted by its new output rows.
+    /// Used by gradients and by inverse convolution. Computed once and cached.
+    pub fn transposed(&self) -> Arc<KernelMap> {
+        self.transposed
+            .get_or_init(|| {
+                let t0 = Instant::now();
+                let mut in_idx = Vec::with_capacity(self.in_idx.len());
+                let mut out_idx = Vec::with_capacity(self.in_idx.len());
+                let mut offset_start = vec![0];
+                for k in 0..self.kernel_volume {
+                    let (ins, outs) = self.pairs(k);
+                    let mut order: Vec<u32> = (0..ins.len() as u32).collect();
+                    order.sort_by_key(|&j| ins[j as usize]);
+                    for j in order {
+                        in_idx.push(outs[j as usize]);
+                        out_idx.push(ins[j as usize]);
+                    }
+                    offset_start.push(in_idx.len());
+                }
+                Arc::new(KernelMap {
+                    kernel_volume: self.kernel_volume,
+                    n_in: self.n_out,
+                    n_out: self.n_in,
+                    in_idx,
+                    out_idx,
+                    offset_start,
+                    build_ms: t0.elapsed().as_secs_f64() * 1e3,
+                    transposed: OnceLock::new(),
+                })
+            })
+            .clone()
+    }
+}
+
+/// A cached convolution: its map and its output set (`None` when the output set is the input set).
+#[derive(Clone, Debug)]
+pub(crate) struct ConvCacheEntry {
+    pub(crate) output: Option<Weak<CoordSet>>,
+    pub(crate) map: Arc<KernelMap>,
+}
+
+/// Link from a downsampled set back to the set and map of the strided convolution that produced it.
+#[derive(Clone, Debug)]
+pub(crate) struct ParentLink {
+    pub(crate) geometry: ConvGeometry,
+    pub(crate) parent: Arc<CoordSet>,
+    pub(crate) map: Arc<KernelMap>,
+}
+
+const CHUNK: usize = 2048;
+
+/// Builds the pairs for the given output sites: `input_of(out_coord, offset)` gives the input coordinate
+/// connected to an output through an offset (or None).
+fn build_pairs<F>(
+    input: &CoordSet,
+    outputs: &[Coord],
+    geom: &ConvGeometry,
+    input_of: F,
+) -> KernelMap
+where
+    F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
+{
+    let t0 = Instant::now();
+    let offsets = geom.offsets();
+    let kv = offsets.len();
+    let chunks: Vec<Vec<(Vec<u32>, Vec<u32>)>> = outputs
+        .par_chunks(CHUNK)
+        .enumerate()
+        .map(|(ci, chunk)| {
+            let mut per: Vec<(Vec<u32>, Vec<u32>)> = (0..kv)
+                .map(|_| {
+                    (
+                        Vec::with_capacity(chunk.len()),
+                        Vec::with_capacity(chunk.len()),
+                    )
+                })
+                .collect();
+            for (j, &o) in chunk.iter().enumerate() {
+                let orow = (ci * CHUNK + j) as u32;
+                for (k, off) in offsets.iter().enumerate() {
+                    if let Some(ic) = input_of(o, *off) {
+                        if let Some(irow) = input.find(ic) {
+                            per[k].0.push(irow as u32);
+                            per[k].1.push(orow);
+                        }
+                    }
+                }
+            }
+            per
+        })
+        .collect();
+    let mut counts = vec![0usize; kv];
+    for c in &chunks {
+        for (k, p) in c.iter().enumerate() {
+            counts[k] += p.0.len();
+        }
+    }
+    let total: usize = counts.iter().sum();
+    let mut in_idx = Vec::with_capacity(total);
+    let mut out_idx = Vec::with_capacity(total);
+    let mut offset_start = Vec::with_capacity(kv + 1);
+    offset_start.push(0);
+    for k in 0..kv {
+        for c in &chunks {
+            in_idx.extend_from_slice(&c[k].0);
+            out_idx.extend_from_slice(&c[k].1);
+        }
+        offset_start.push(in_idx.len());
+    }
+    KernelMap {
+        kernel_volume: kv,
+        n_in: input.len(),
+        n_out: outputs.len(),
+        in_idx,
+        out_idx,
+        offset_start,
+        build_ms: t0.elapsed().as_secs_f64() * 1e3,
+        transposed: OnceLock::new(),
+    }
+}
+
+/// Submanifold map: outputs are the inputs, the kernel centred. Errors if a kernel extent is even.
+pub fn build_submanifold(
+    input: &CoordSet,
+    kernel: [usize; 3],
+    dilation: [usize; 3],
+) -> Result<KernelMap> {
+    let geom = ConvGeometry::new(kernel).with_dilation(dilation);
+    geom.validate()?;
+    if kernel.iter().any(|k| k % 2 == 0) {
+        return Err(SparseError::Config(format!(
+            "submanifold convolution needs an odd kernel, got {kernel:?}"
+        )));
+    }
+    let half: [i32; 3] = std::array::from_fn(|a| ((kernel[a] / 2) * dilation[a]) as i32);
+    let d: [i32; 3] = std::array::from_fn(|a| dilation[a] as i32);
+    Ok(build_pairs(input, input.coords(), &geom, |o, k| {
+        Some([
+            o[0],
+            o[1] - half[0] + k[0] as i32 * d[0],
+            o[2] - half[1] + k[1] as i32 * d[1],
+            o[3] - half[2] + k[2] as i32 * d[2],
+        ])
+    }))
+}
+
+/// Output sites and map of a regular convolution (or pooling) with the given geometry.
+pub fn build_regular(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+) -> Result<(Vec<Coord>, [usize; 3], KernelMap)> {
+    let out_shape = geom.regular_output_shape(input.spatial_shape())?;
+    let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
+    let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
+    let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
+    let os: [i32; 3] = std::array::from_fn(|a| out_shape[a] as i32);
+    let offsets = geom.offsets();
+    // Every output o with o*s - p + k*d = i for an active i.
+    let keys: Vec<u64> = input
+        .coords()
+        .par_chunks(CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut v = Vec::with_capacity(chunk.len() * offsets.len());
+            for &c in chunk {
+                'off: for k in &offsets {
+                    let mut o = [c[0], 0, 0, 0];
+                    for a in 0..3 {
+                        let t = c[a + 1] + p[a] - k[a] as i32 * d[a];
+                        if t < 0 || t % s[a] != 0 || t / s[a] >= os[a] {
+                            continue 'off;
+                        }
+                        o[a + 1] = t / s[a];
+                    }
+                    v.push(pack(o));
+                }
+            }
+            v
+        })
+        .collect();
+    let outputs = unique_sorted(keys);
+    let map = build_pairs(input, &outputs, geom, |o, k| {
+        Some([
+            o[0],
+            o[1] * s[0] - p[0] + k[0] as i32 * d[0],
+            o[2] * s[1] - p[1] + k[1] as i32 * d[1],
+            o[3] * s[2] - p[2] + k[2] as i32 * d[2],
+        ])
+    });
+    Ok((outputs, out_shape, map))
+}
+
+/// Output sites and map of a transposed convolution.
+pub fn build_transposed(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    output_padding: [usize; 3],
+) -> Result<(Vec<Coord>, [usize; 3], KernelMap)> {
+    let out_shape = geom.transposed_output_shape(input.spatial_shape(), output_padding)?;
+    let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
+    let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
+    let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
+    let os: [i32; 3] = std::array::from_fn(|a| out_shape[a] as i32);
+    let offsets = geom.offsets();
+    let keys: Vec<u64> = input
+        .coords()
+        .par_chunks(CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut v = Vec::with_capacity(chunk.len() * offsets.len());
+            for &c in chunk {
+                'off: for k in &offsets {
+                    let mut o = [c[0], 0, 0, 0];
+                    for a in 0..3 {
+                        let t = c[a + 1] * s[a] - p[a] + k[a] as i32 * d[a];
+                        if t < 0 || t >= os[a] {
+                            continue 'off;
+                        }
+                        o[a + 1] = t;
+                    }
+                    v.push(pack(o));
+                }
+            }
+            v
+        })
+        .collect();
+    let outputs = unique_sorted(keys);
+    let map = build_pairs(input, &outputs, geom, |o, k| {
+        let mut i = [o[0], 0, 0, 0];
+        for a in 0..3 {
+            let t = o[a + 1] + p[a] - k[a] as i32 * d[a];
+            if t < 0 || t % s[a] != 0 {
+                return None;
+            }
+            i[a + 1] = t / s[a];
+        }
+        Some(i)
+    });
+    Ok((outputs, out_shape, map))
+}
+
+/// Looks up or builds (and caches) the map and output set of a convolution on `input`.
+///
+/// Returns the output set (the input itself for submanifold) and the map. A strided regular
+/// convolution's output set records a link to `input`, used by [`inverse_of`].
+pub fn conv_map(
+    input: &Arc<CoordSet>,
+    kind: MapKind,
+    geometry: ConvGeometry,
+) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
+    let key = KernelMapKey {
+        kind,
+        geometry,
+        tensor_stride: input.tensor_stride(),
+    };
+    {
+        let cache = input.cache.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(entry) = cache.get(&key) {
+            match &entry.output {
+                None => return Ok((input.clone(), entry.map.clone())),
+                Some(w) => {
+                    if let Some(out) = w.upgrade() {
+                        return Ok((out, entry.map.clone()));
+                    }
+                }
+            }
+        }
+    }
+    let ts = input.tensor_stride();
+    let (output, map) = match kind {
+        MapKind::Submanifold => {
+            let map = Arc::new(build_submanifold(
+                input,
+                geometry.kernel,
+                geometry.dilation,
+            )?);
+            (input.clone(), map)
+        }
+        MapKind::Regular => {
+            let (coords, shape, map) = build_regular(input, &geometry)?;
+            let stride = std::array::from_fn(|a| ts[a] * geometry.stride[a]);
+            let out = Arc::new(CoordSet::from_valid_unique(
+                coords,
+                shape,
+                input.batch_size(),
+                stride,
+            ));
+            (out, Arc::new(map))
+        }
+        MapKind::Transposed { output_padding } => {
+            let (coords, shape, map) = build_transposed(input, &geometry, output_padding)?;
+            let stride = std::array::from_fn(|a| (ts[a] / geometry.stride[a]).max(1));
+            let out = Arc::new(CoordSet::from_valid_unique(
+                coords,
+                shape,
+                input.batch_size(),
+                stride,
+            ));
+            (out, Arc::new(map))
+        }
+    };
+    if kind == MapKind::Regular {
+        output
+            .parents
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(ParentLink {
+                geometry,
+                parent: input.clone(),
+                map: map.clone(),
+            });
+    }
+    let entry = ConvCacheEntry {
+        output: if kind == MapKind::Submanifold {
+            None
+        } else {
+            Some(Arc::downgrade(&output))
+        },
+        map: map.clone(),
+    };
+    input
+        .cache
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .insert(key, entry);
+    Ok((output, map))
+}
+
+/// The set and map that invert the regular convolution with `geometry` which produced `set`: the
+/// returned map goes from `set` back to the parent set (the strided map transposed).
+pub fn inverse_of(
+    set: &Arc<CoordSet>,
+    geometry: ConvGeometry,
+) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
+    let parents = set.parents.lock().unwrap_or_else(|e| e.into_inner());
+    parents
+        .iter()
+        .rev()
+        .find(|l| l.geometry == geometry)
+        .map(|l| (l.parent.clone(), l.map.transposed()))
+        .ok_or_else(|| SparseError::NoInverseMap(format!("{geometry:?}")))
+}
