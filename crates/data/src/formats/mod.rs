@@ -1,0 +1,8 @@
+//! Readers and writers of the real dataset formats (FACTS.md §1 and §3), plus the small
+//! `.npy` / file helpers they share.
+
+pub mod io;
+pub mod npy;
+pub mod nuscenes_occupancy;
+pub mod occ3d;
+pub mod semantic_kitti;
