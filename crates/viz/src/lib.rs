@@ -1,0 +1,190 @@
+//! occ-viz: headless visualization of voxel label grids — no display, no GPU, no font files.
+//!
+//! - [`render_voxels`]: perspective render of a dense label grid (shaded cubes, z-buffer,
+//!   legend, title), camera behind and above the ego (DESIGN.md "viz").
+//! - [`overlay_on_image`]: drawn voxels projected onto a camera image with `img_from_lidar`,
+//!   depth-sorted and alpha-blended.
+//! - [`side_by_side`]: labelled panels of equal height (image | prediction | ground truth).
+//! - [`write_ply`]: drawn voxels as a coloured PLY point cloud.
+//! - [`Palette`]: SemanticKITTI (20 classes), Occ3D-nuScenes (18 incl. free) and
+//!   nuScenes-Occupancy (17 incl. empty) names and colours; [`height_color`] ramp for
+//!   occupancy-only grids.
+//!
+//! Label grids are `u8` per voxel in C order `[x][y][z]` (z fastest), `grid.num_voxels()` long
+//! (FACTS.md §1). Images are `occ_data::image::RgbImage` (re-exported as [`RgbImage`]); write
+//! them with `occ_data::image::write_png`. An optional `rerun` streaming feature is not
+//! implemented.
+
+mod canvas;
+mod font;
+mod overlay;
+mod palette;
+mod panels;
+mod ply;
+mod raster;
+mod render;
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+pub use occ_data::image::RgbImage;
+use occ_geometry::VoxelGrid;
+
+pub use overlay::{overlay_on_image, OverlayOptions};
+pub use palette::{height_color, Palette, UNKNOWN_CLASS_RGB};
+pub use panels::{side_by_side, LABEL_STRIP_H, PANEL_GAP};
+pub use ply::{write_ply, PlyFormat, PlyOptions};
+pub use render::{
+    fit_camera, render_camera, render_voxels, render_voxels_from_view, RenderCamera, RenderOptions,
+    Viewport, MAX_PIXELS,
+};
+
+use canvas::Canvas;
+
+/// Errors of this crate. Each names the file or the input that is wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum VizError {
+    /// The label array does not match the grid.
+    #[error("label array has {got} voxels but the grid {dims:?} has {expected}")]
+    LabelSize {
+        /// `grid.num_voxels()`.
+        expected: usize,
+        /// `labels.len()`.
+        got: usize,
+        /// Grid dims.
+        dims: [usize; 3],
+    },
+    /// The grid cannot be rendered (zero dims, bad voxel size or origin).
+    #[error("invalid voxel grid: {0}")]
+    InvalidGrid(String),
+    /// An option or matrix is out of range.
+    #[error("invalid visualization option: {0}")]
+    InvalidOptions(String),
+    /// An image given as input is inconsistent.
+    #[error("invalid image: {0}")]
+    InvalidImage(String),
+    /// Writing or renaming an output file failed.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The output path.
+        path: PathBuf,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+pub(crate) fn check_grid(grid: &VoxelGrid) -> Result<(), VizError> {
+    if grid.dims.contains(&0) {
+        return Err(VizError::InvalidGrid(format!(
+            "dims {:?} contain a zero",
+            grid.dims
+        )));
+    }
+    if !(grid.voxel_size_m.is_finite() && grid.voxel_size_m > 0.0) {
+        return Err(VizError::InvalidGrid(format!(
+            "voxel size {} m is not a positive number",
+            grid.voxel_size_m
+        )));
+    }
+    if grid.origin_m.iter().any(|v| !v.is_finite()) {
+        return Err(VizError::InvalidGrid(format!(
+            "origin {:?} m is not finite",
+            grid.origin_m
+        )));
+    }
+    let n = grid.dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    if n.is_none_or(|n| n > u32::MAX as usize) {
+        return Err(VizError::InvalidGrid(format!(
+            "dims {:?} are too large",
+            grid.dims
+        )));
+    }
+    Ok(())
+}
+
+pub(crate) fn check_labels(labels: &[u8], grid: &VoxelGrid) -> Result<(), VizError> {
+    let expected = grid.dims[0] * grid.dims[1] * grid.dims[2];
+    if labels.len() != expected {
+        return Err(VizError::LabelSize {
+            expected,
+            got: labels.len(),
+            dims: grid.dims,
+        });
+    }
+    Ok(())
+}
+
+pub(crate) fn canvas_to_image(c: Canvas) -> RgbImage {
+    RgbImage {
+        width: c.width,
+        height: c.height,
+        data: c.data,
+    }
+}
+
+pub(crate) fn image_to_canvas(img: &RgbImage) -> Result<Canvas, VizError> {
+    let (w, h) = (img.width, img.height);
+    if w.checked_mul(h).and_then(|n| n.checked_mul(3)) != Some(img.data.len()) {
+        return Err(VizError::InvalidImage(format!(
+            "{}x{} RGB image has {} bytes, expected {}",
+            w,
+            h,
+            img.data.len(),
+            w.saturating_mul(h).saturating_mul(3)
+        )));
+    }
+    Ok(Canvas {
+        width: w,
+        height: h,
+        data: img.data.clone(),
+    })
+}
+
+/// Create `path` through a temporary file in the same folder, renamed into place only after
+/// `write` succeeded (the temporary file is removed on failure).
+pub(crate) fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(File) -> std::io::Result<()>,
+) -> Result<(), VizError> {
+    let io_err = |source| VizError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let name = path.file_name().ok_or_else(|| {
+        io_err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "path has no file name",
+        ))
+    })?;
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(name);
+    tmp_name.push(format!(".tmp{}", std::process::id()));
+    let tmp = path.with_file_name(tmp_name);
+    let result = File::create(&tmp).and_then(|f| {
+        write(f)?;
+        std::fs::rename(&tmp, path)
+    });
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(io_err(e));
+    }
+    Ok(())
+}
+
+/// Draw `text` into `img` with the built-in 5x7 bitmap font (`A-Z a-z 0-9` and common
+/// punctuation; other characters show as `?`), top-left corner at (`x`, `y`), each font pixel a
+/// `scale` x `scale` block, clipped to the image. Returns the text width in pixels.
+pub fn draw_text(
+    img: &mut RgbImage,
+    x: i64,
+    y: i64,
+    text: &str,
+    scale: usize,
+    color: [u8; 3],
+) -> Result<usize, VizError> {
+    let mut canvas = image_to_canvas(img)?;
+    font::draw_text(&mut canvas, x, y, text, scale, color);
+    img.data = canvas.data;
+    Ok(font::text_width(text, scale))
+}
