@@ -1,0 +1,301 @@
+//! Scoring whole folders of predictions against ground truth in the datasets' own layouts,
+//! frames in parallel (rayon; each worker holds one frame at a time, so memory stays bounded).
+//!
+//! # SemanticKITTI (`sparseocc eval --dataset semantickitti`)
+//! Like semantic-kitti-api `evaluate_completion.py`:
+//! - ground truth `GT/sequences/XX/voxels/NNNNNN.label` (uint16 raw ids) + `NNNNNN.invalid`
+//!   (bit-packed); the frames are **every** `voxels/*.label` of the chosen sequences (the input-only
+//!   `*.bin` frames without a `.label` are not scored);
+//! - predictions `PRED/sequences/XX/predictions/NNNNNN.label` (uint16 raw ids, the submission
+//!   format, 256×256×32);
+//! - both are remapped with the learning-map lut ([`LearningMap::semantic_kitti`]); prediction ids
+//!   that remap to 255 (unknown ids, outlier, other-structure, other-object) are invalid predictions
+//!   (see [`crate::protocol`]);
+//! - every prediction must exist: all are checked before scoring, and the error names the first
+//!   missing file and the count.
+//!
+//! Sequences: `FolderOptions::sequences`, written `8` or `08` (numbers are zero-padded to two
+//! digits as the official script does); by default every sequence under `GT/sequences` is used.
+//!
+//! # Occ3D (`sparseocc eval --dataset occ3d`)
+//! - ground truth `GT/gts/<scene>/<token>/labels.npz` (`GT` may also be the `gts` folder itself, or
+//!   any folder holding `<...>/<token>/labels.npz` up to 4 levels deep, like the public sample);
+//! - prediction of a frame with relative folder `<scene>/<token>`: `PRED/<scene>/<token>/labels.npz`
+//!   (the ground-truth layout) or, if that does not exist, the flat `PRED/<token>.npz`; in both the
+//!   key `semantics` holds the `[200,200,16]` class grid (any integer dtype, or integer-valued
+//!   floats; values outside 0..=17 are invalid predictions); other keys are ignored;
+//! - voxels evaluated: `mask_camera != 0` by default (the challenge setting), or
+//!   `mask_lidar` / all voxels via [`Occ3dMask`].
+
+use crate::error::EvalError;
+use crate::protocol::{EvalMask, Evaluator, Protocol};
+use crate::report::EvalReport;
+use occ_data::formats::npy::{parse_npy, NpyValues};
+use occ_data::formats::occ3d::read_labels_npz;
+use occ_data::formats::semantic_kitti::{
+    list_sequences, list_stems, read_label_raw, read_packed_bits, KittiPaths, LearningMap,
+    NUM_VOXELS,
+};
+use rayon::prelude::*;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+/// Which Occ3D mask selects the evaluated voxels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Occ3dMask {
+    /// `mask_camera` (the Occ3D challenge metric).
+    #[default]
+    Camera,
+    /// `mask_lidar`.
+    Lidar,
+    /// Every voxel.
+    None,
+}
+
+/// Options of the folder scoring.
+#[derive(Clone, Copy, Default)]
+pub struct FolderOptions<'a> {
+    /// SemanticKITTI sequences to score; `None` = every sequence under `GT/sequences`.
+    pub sequences: Option<&'a [String]>,
+    /// Occ3D mask.
+    pub occ3d_mask: Occ3dMask,
+    /// Called once per scored frame (from worker threads), e.g. to advance a progress bar.
+    pub on_frame: Option<&'a (dyn Fn() + Sync)>,
+}
+
+/// Zero-pad numeric sequence ids to two digits (`8` -> `08`), as `evaluate_completion.py` does.
+fn normalise_sequence(s: &str) -> String {
+    match s.trim().parse::<u32>() {
+        Ok(n) => format!("{n:02}"),
+        Err(_) => s.trim().to_string(),
+    }
+}
+
+/// One frame to score: ground truth and prediction paths.
+struct Job {
+    name: String,
+    gt: PathBuf,
+    extra: Option<PathBuf>,
+    pred: PathBuf,
+}
+
+fn check_predictions(jobs: &[Job]) -> Result<(), EvalError> {
+    let missing: Vec<&Job> = jobs.iter().filter(|j| !j.pred.is_file()).collect();
+    match missing.first() {
+        None => Ok(()),
+        Some(first) => Err(EvalError::MissingPrediction {
+            path: first.pred.clone(),
+            gt: first.gt.clone(),
+            count: missing.len(),
+        }),
+    }
+}
+
+fn run_jobs(
+    protocol: Protocol,
+    jobs: &[Job],
+    opts: &FolderOptions<'_>,
+    score: impl Fn(&Job, &mut Evaluator) -> Result<(), EvalError> + Sync,
+) -> Result<EvalReport, EvalError> {
+    let ev = jobs
+        .par_iter()
+        .try_fold(
+            || Evaluator::new(protocol),
+            |mut acc, job| {
+                score(job, &mut acc)?;
+                if let Some(cb) = opts.on_frame {
+                    cb();
+                }
+                Ok::<_, EvalError>(acc)
+            },
+        )
+        .try_reduce(
+            || Evaluator::new(protocol),
+            |mut a, b| {
+                a.merge(&b)?;
+                Ok(a)
+            },
+        )?;
+    Ok(ev.report())
+}
+
+/// Score SemanticKITTI submission folders (see the module docs for layout and rules).
+pub fn score_semantic_kitti_folder(
+    gt_root: &Path,
+    pred_root: &Path,
+    opts: &FolderOptions<'_>,
+) -> Result<EvalReport, EvalError> {
+    let gt_paths = KittiPaths::new(gt_root);
+    let pred_paths = KittiPaths::new(pred_root);
+    let sequences: Vec<String> = match opts.sequences {
+        Some(s) => s.iter().map(|s| normalise_sequence(s)).collect(),
+        None => list_sequences(gt_root)?,
+    };
+    let mut jobs = Vec::new();
+    for seq in &sequences {
+        let seq_dir = gt_paths.sequence_dir(seq);
+        if !seq_dir.is_dir() {
+            return Err(EvalError::NoFrames {
+                root: seq_dir,
+                what: format!("sequence {seq} does not exist"),
+            });
+        }
+        for frame in list_stems(&seq_dir.join("voxels"), "label")? {
+            jobs.push(Job {
+                name: format!("{seq}/{frame}"),
+                gt: gt_paths.voxels(seq, &frame, "label"),
+                extra: Some(gt_paths.voxels(seq, &frame, "invalid")),
+                pred: pred_paths.prediction(seq, &frame),
+            });
+        }
+    }
+    if jobs.is_empty() {
+        return Err(EvalError::NoFrames {
+            root: gt_root.to_path_buf(),
+            what: format!(
+                "no sequences/XX/voxels/*.label in sequence(s) [{}]",
+                sequences.join(", ")
+            ),
+        });
+    }
+    check_predictions(&jobs)?;
+    let map = LearningMap::semantic_kitti();
+    run_jobs(Protocol::SemanticKitti, &jobs, opts, |job, ev| {
+        let gt = map.remap(&read_label_raw(&job.gt, NUM_VOXELS)?);
+        let invalid_path = job.extra.as_deref().unwrap_or(&job.gt);
+        let invalid = read_packed_bits(invalid_path, NUM_VOXELS)?;
+        let pred = map.remap(&read_label_raw(&job.pred, NUM_VOXELS)?);
+        ev.add_frame(&pred, &gt, EvalMask::Invalid(&invalid), &job.name)
+    })
+}
+
+/// All `labels.npz` below `base` (at most `depth` folders deep), as folders relative to `base`.
+fn find_npz(
+    base: &Path,
+    rel: &Path,
+    depth: usize,
+    out: &mut Vec<PathBuf>,
+) -> Result<(), EvalError> {
+    let dir = base.join(rel);
+    let rd = std::fs::read_dir(&dir).map_err(|source| EvalError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    for entry in rd {
+        let entry = entry.map_err(|source| EvalError::Io {
+            path: dir.clone(),
+            source,
+        })?;
+        let path = entry.path();
+        let name = entry.file_name();
+        if path.is_dir() && depth > 0 {
+            find_npz(base, &rel.join(&name), depth - 1, out)?;
+        } else if name == "labels.npz" && path.is_file() && !rel.as_os_str().is_empty() {
+            out.push(rel.to_path_buf());
+        }
+    }
+    Ok(())
+}
+
+/// Read the `semantics` array of an Occ3D prediction `.npz` as class bytes (values outside
+/// 0..=254 become 255, i.e. invalid); `dims` must match.
+pub fn read_occ3d_prediction(path: &Path, dims: [usize; 3]) -> Result<Vec<u8>, EvalError> {
+    let bad = |detail: String| EvalError::BadPrediction {
+        path: path.to_path_buf(),
+        detail,
+    };
+    let bytes = std::fs::read(path).map_err(|source| EvalError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&bytes[..]))
+        .map_err(|e| bad(format!("not a valid .npz (zip): {e}")))?;
+    let mut entry = archive
+        .by_name("semantics.npy")
+        .map_err(|e| bad(format!("no `semantics` array: {e}")))?;
+    let n: usize = dims.iter().product();
+    // A uint8 grid plus a generous header; larger entries (e.g. int64) are allowed up to 8 bytes per voxel.
+    let limit = (n as u64) * 8 + (1 << 16);
+    let mut npy = Vec::new();
+    (&mut entry)
+        .take(limit + 1)
+        .read_to_end(&mut npy)
+        .map_err(|e| bad(format!("cannot decompress `semantics`: {e}")))?;
+    if npy.len() as u64 > limit {
+        return Err(bad(format!("`semantics` is larger than {limit} bytes")));
+    }
+    let arr = parse_npy(&npy, &path.join("semantics.npy"))?;
+    if arr.shape != dims {
+        return Err(bad(format!(
+            "`semantics` has shape {:?}, the ground truth {dims:?}",
+            arr.shape
+        )));
+    }
+    let to_class = |v: f64| -> Result<u8, EvalError> {
+        if v.fract() != 0.0 || v.is_nan() {
+            return Err(bad(format!("`semantics` value {v} is not an integer")));
+        }
+        Ok(if (0.0..=254.0).contains(&v) {
+            v as u8
+        } else {
+            255
+        })
+    };
+    match arr.values {
+        NpyValues::U8(v) => Ok(v),
+        NpyValues::Bool(_) => Err(bad("`semantics` is boolean, expected class ids".into())),
+        other => other.to_f64().into_iter().map(to_class).collect(),
+    }
+}
+
+/// Score Occ3D prediction folders (see the module docs for layout and rules).
+pub fn score_occ3d_folder(
+    gt_root: &Path,
+    pred_root: &Path,
+    opts: &FolderOptions<'_>,
+) -> Result<EvalReport, EvalError> {
+    let base = if gt_root.join("gts").is_dir() {
+        gt_root.join("gts")
+    } else {
+        gt_root.to_path_buf()
+    };
+    let mut rels = Vec::new();
+    find_npz(&base, Path::new(""), 4, &mut rels)?;
+    rels.sort();
+    if rels.is_empty() {
+        return Err(EvalError::NoFrames {
+            root: base,
+            what: "no <scene>/<token>/labels.npz".into(),
+        });
+    }
+    let jobs: Vec<Job> = rels
+        .iter()
+        .map(|rel| {
+            let nested = pred_root.join(rel).join("labels.npz");
+            let flat = rel
+                .file_name()
+                .map(|t| pred_root.join(format!("{}.npz", t.to_string_lossy())));
+            let pred = match flat {
+                Some(f) if !nested.is_file() && f.is_file() => f,
+                _ => nested,
+            };
+            Job {
+                name: rel.display().to_string(),
+                gt: base.join(rel).join("labels.npz"),
+                extra: None,
+                pred,
+            }
+        })
+        .collect();
+    check_predictions(&jobs)?;
+    run_jobs(Protocol::Occ3d, &jobs, opts, |job, ev| {
+        let gt = read_labels_npz(&job.gt)?;
+        let pred = read_occ3d_prediction(&job.pred, gt.dims)?;
+        let mask = match opts.occ3d_mask {
+            Occ3dMask::Camera => EvalMask::Visible(&gt.mask_camera),
+            Occ3dMask::Lidar => EvalMask::Visible(&gt.mask_lidar),
+            Occ3dMask::None => EvalMask::All,
+        };
+        ev.add_frame(&pred, &gt.semantics, mask, &job.name)
+    })
+}
