@@ -1,0 +1,258 @@
+//! The synthetic Occ3D-nuScenes-layout generator (`surround`), checked through the real readers.
+
+use occ_data::formats::nuscenes_occupancy::{NuscenesTables, CAMERA_CHANNELS};
+use occ_data::formats::occ3d::{read_labels_npz, FREE};
+use occ_data::image::read_png;
+use occ_data::synthetic::classes::{nearest_class_by_chroma, nuscenes_class};
+use occ_data::synthetic::{generate, read_synthetic_meta, Preset, SynthConfig, NUSCENES_VERSION};
+use occ_geometry::{mat4_inverse, transform_point, Mat4, PinholeCamera, VoxelGrid};
+use std::path::PathBuf;
+
+struct TempDir(PathBuf);
+impl TempDir {
+    fn new(tag: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("sparseocc-synth-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        TempDir(p)
+    }
+}
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Exact voxel traversal of `o + t·d` through `occupied` (see synthetic_kitti.rs): visited
+/// voxels up to and including the first occupied one.
+fn traverse(
+    grid: &VoxelGrid,
+    occupied: &dyn Fn(usize) -> bool,
+    o: [f64; 3],
+    d: [f64; 3],
+) -> (Vec<usize>, Option<usize>) {
+    let mut visited = Vec::new();
+    let mut t = 0.0;
+    // enter the grid if the origin is outside (cameras are inside the Occ3D volume)
+    let Some(mut ijk) = grid.voxel_of_point_m(o) else {
+        return (visited, None);
+    };
+    let s = grid.voxel_size_m;
+    let mut t_next = [f64::INFINITY; 3];
+    let mut t_delta = [f64::INFINITY; 3];
+    for a in 0..3 {
+        let lo = grid.origin_m[a] + ijk[a] as f64 * s;
+        if d[a] > 0.0 {
+            t_next[a] = (lo + s - o[a]) / d[a];
+            t_delta[a] = s / d[a];
+        } else if d[a] < 0.0 {
+            t_next[a] = (lo - o[a]) / d[a];
+            t_delta[a] = -s / d[a];
+        }
+    }
+    loop {
+        let i = grid.linear_index(ijk);
+        visited.push(i);
+        if occupied(i) {
+            return (visited, Some(i));
+        }
+        let a = (0..3)
+            .min_by(|&x, &y| t_next[x].partial_cmp(&t_next[y]).unwrap())
+            .unwrap();
+        t = t_next[a].max(t);
+        if t > 150.0 {
+            return (visited, None);
+        }
+        if d[a] > 0.0 {
+            ijk[a] += 1;
+            if ijk[a] >= grid.dims[a] {
+                return (visited, None);
+            }
+        } else {
+            if ijk[a] == 0 {
+                return (visited, None);
+            }
+            ijk[a] -= 1;
+        }
+        t_next[a] += t_delta[a];
+    }
+}
+
+fn pixel_ray(ego_from_cam: &Mat4, cam: &PinholeCamera, u: usize, v: usize) -> ([f64; 3], [f64; 3]) {
+    let o = transform_point(ego_from_cam, [0.0, 0.0, 0.0]);
+    let p = transform_point(
+        ego_from_cam,
+        [
+            (u as f64 - cam.cx) / cam.fx,
+            (v as f64 - cam.cy) / cam.fy,
+            1.0,
+        ],
+    );
+    let dv = [p[0] - o[0], p[1] - o[1], p[2] - o[2]];
+    let n = (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]).sqrt();
+    (o, dv.map(|x| x / n))
+}
+
+#[test]
+fn surround_scene_reads_back_and_is_consistent() {
+    let t = TempDir::new("surround");
+    let (w, h) = (176, 64);
+    let cfg = SynthConfig {
+        preset: Preset::Surround,
+        seed: 4,
+        sequences: vec![("0001".into(), 2)],
+        image_size: Some((w, h)),
+    };
+    let summary = generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    assert_eq!(summary.frames, 2);
+    let meta = read_synthetic_meta(&t.0).unwrap().unwrap();
+    assert!(meta.complete);
+    assert_eq!(meta.grid, VoxelGrid::occ3d_nuscenes());
+    assert_eq!(meta.num_cameras, 6);
+    let tables = NuscenesTables::load(&t.0.join(NUSCENES_VERSION)).unwrap();
+    let tokens: Vec<String> = tables
+        .sample_tokens()
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    assert_eq!(tokens.len(), 2);
+    let grid = meta.grid;
+    let candidates: Vec<u8> = (1..=24).collect();
+    let mut seen_classes = [0u64; 18];
+    let (mut n_app, mut ok_app) = (0usize, 0usize);
+    let mut checked_cam = 0usize;
+    for tok in &tokens {
+        let cams = tables.sample_cameras(tok).unwrap();
+        assert_eq!(cams.cameras.len(), 6);
+        assert_eq!(
+            cams.scene_token,
+            meta.sequences[0].scene_token.clone().unwrap()
+        );
+        let labels = read_labels_npz(
+            &t.0.join("gts")
+                .join("scene-0001")
+                .join(tok)
+                .join("labels.npz"),
+        )
+        .unwrap();
+        assert_eq!(labels.dims, [200, 200, 16]);
+        for &c in &labels.semantics {
+            assert!(c <= FREE);
+            seen_classes[c as usize] += 1;
+        }
+        let occupied = |i: usize| labels.semantics[i] != FREE;
+        // LiDAR returns, moved to the ego frame, are occupied and LiDAR-observed voxels
+        let pts = std::fs::read(t.0.join(&cams.lidar_filename)).unwrap();
+        assert_eq!(pts.len() % 20, 0);
+        let mut n_in = 0;
+        for c in pts.chunks_exact(20) {
+            let f = |k: usize| {
+                f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]) as f64
+            };
+            let p = transform_point(&cams.ego_from_lidar, [f(0), f(1), f(2)]);
+            if let Some(ijk) = grid.voxel_of_point_m(p) {
+                let i = grid.linear_index(ijk);
+                assert!(occupied(i), "LiDAR return in a free voxel {ijk:?}");
+                assert_eq!(labels.mask_lidar[i], 1);
+                n_in += 1;
+            }
+        }
+        assert!(n_in > 5000, "{n_in} LiDAR returns in the grid");
+        for (ci, cam) in cams.cameras.iter().enumerate() {
+            assert_eq!(cam.channel, CAMERA_CHANNELS[ci]);
+            let img = read_png(&t.0.join(&cam.filename)).unwrap();
+            assert_eq!((img.width, img.height), (w, h));
+            let ego_from_cam = mat4_inverse(&cam.cam_from_ego_lidar).unwrap();
+            let k = cam.view.camera;
+            let mut first = vec![None; w * h];
+            for v in 0..h {
+                for u in 0..w {
+                    let (o, d) = pixel_ray(&ego_from_cam, &k, u, v);
+                    let (visited, hit) = traverse(&grid, &occupied, o, d);
+                    for i in visited {
+                        assert_eq!(
+                            labels.mask_camera[i],
+                            1,
+                            "{}: voxel {:?} on the ray of pixel ({u},{v}) not in mask_camera",
+                            cam.channel,
+                            grid.ijk_of(i)
+                        );
+                        checked_cam += 1;
+                    }
+                    first[v * w + u] = hit;
+                }
+            }
+            // appearance of the voxel each pixel shows
+            for v in 0..h {
+                for u in 0..w {
+                    if let Some(i) = first[v * w + u] {
+                        let rgb = img.pixel(u, v).unwrap();
+                        let got = nearest_class_by_chroma(rgb, &candidates).map(nuscenes_class);
+                        n_app += 1;
+                        ok_app += usize::from(got == Some(labels.semantics[i]));
+                    }
+                }
+            }
+        }
+        let cam_frac = labels.mask_camera.iter().filter(|&&m| m == 1).count() as f64
+            / labels.mask_camera.len() as f64;
+        assert!(
+            cam_frac > 0.05 && cam_frac < 0.95,
+            "mask_camera fraction {cam_frac}"
+        );
+    }
+    let frac = ok_app as f64 / n_app as f64;
+    eprintln!("surround appearance (pixel shows voxel): {ok_app}/{n_app} = {frac:.4}");
+    assert!(frac >= 0.95, "{frac}");
+    assert!(checked_cam > 50_000);
+    for c in 1..=16 {
+        assert!(
+            seen_classes[c] > 0,
+            "nuScenes class {c} never occurs: {seen_classes:?}"
+        );
+    }
+    assert!(seen_classes[FREE as usize] > seen_classes[1..17].iter().sum::<u64>());
+}
+
+#[test]
+fn rerun_replaces_previous_output_and_foreign_data_is_protected() {
+    let t = TempDir::new("rerun");
+    let mut cfg = SynthConfig {
+        preset: Preset::Surround,
+        seed: 1,
+        sequences: vec![("a".into(), 2)],
+        image_size: Some((32, 16)),
+    };
+    generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    cfg.sequences = vec![("b".into(), 1)];
+    generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    assert!(!t.0.join("gts/scene-a").exists());
+    let stale = std::fs::read_dir(t.0.join("samples/CAM_FRONT"))
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with("scene-a__")
+        })
+        .count();
+    assert_eq!(stale, 0);
+    let tables = NuscenesTables::load(&t.0.join(NUSCENES_VERSION)).unwrap();
+    assert_eq!(tables.sample_tokens().len(), 1);
+    // a folder that holds a dataset without synthetic.json is never overwritten
+    let foreign = TempDir::new("foreign");
+    std::fs::create_dir_all(foreign.0.join("sequences/00")).unwrap();
+    std::fs::write(foreign.0.join("sequences/00/calib.txt"), b"x").unwrap();
+    let k = SynthConfig {
+        preset: Preset::KittiSmall,
+        seed: 1,
+        sequences: vec![("00".into(), 1)],
+        image_size: Some((32, 16)),
+    };
+    let e = generate(&foreign.0, &k, &mut |_, _| {}).unwrap_err();
+    assert!(e.to_string().contains("refusing"), "{e}");
+    assert_eq!(
+        std::fs::read(foreign.0.join("sequences/00/calib.txt")).unwrap(),
+        b"x"
+    );
+}
