@@ -159,12 +159,16 @@ pub fn score_semantic_kitti_folder(
         });
     }
     check_predictions(&jobs)?;
+    // A synthetic dataset may use a coarser grid over the same volume (its synthetic.json says so).
+    let n_voxels = occ_data::synthetic::read_synthetic_meta(gt_root)?
+        .map(|m| m.grid.num_voxels())
+        .unwrap_or(NUM_VOXELS);
     let map = LearningMap::semantic_kitti();
     run_jobs(Protocol::SemanticKitti, &jobs, opts, |job, ev| {
-        let gt = map.remap(&read_label_raw(&job.gt, NUM_VOXELS)?);
+        let gt = map.remap(&read_label_raw(&job.gt, n_voxels)?);
         let invalid_path = job.extra.as_deref().unwrap_or(&job.gt);
-        let invalid = read_packed_bits(invalid_path, NUM_VOXELS)?;
-        let pred = map.remap(&read_label_raw(&job.pred, NUM_VOXELS)?);
+        let invalid = read_packed_bits(invalid_path, n_voxels)?;
+        let pred = map.remap(&read_label_raw(&job.pred, n_voxels)?);
         ev.add_frame(&pred, &gt, EvalMask::Invalid(&invalid), &job.name)
     })
 }

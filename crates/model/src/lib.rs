@@ -8,8 +8,10 @@
 
 pub mod batch;
 pub mod error;
+pub mod network;
 pub mod output;
 
 pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
+pub use network::OccNetwork;
 pub use output::ModelOutput;

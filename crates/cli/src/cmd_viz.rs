@@ -1,0 +1,126 @@
+//! `sparseocc viz`: headless renders of voxel grids, camera overlays, PLY export.
+
+use crate::labels_io::{read_label_grid, LabelGrid};
+use anyhow::{Context, Result};
+use occ_data::formats::semantic_kitti as sk;
+use occ_data::image::{read_png, write_png, RgbImage};
+use occ_viz::{
+    overlay_on_image, render_voxels, side_by_side, write_ply, OverlayOptions, PlyOptions,
+    RenderOptions,
+};
+use std::path::{Path, PathBuf};
+
+/// Arguments of `sparseocc viz`.
+#[derive(clap::Args, Debug)]
+pub struct VizArgs {
+    /// Ground-truth (or any) label grid: .label, .bin, .npy or labels.npz.
+    #[arg(long)]
+    pub labels: PathBuf,
+    /// A prediction to show beside it (same kinds).
+    #[arg(long)]
+    pub pred: Option<PathBuf>,
+    /// Camera image (PNG) for an overlay panel; needs --calib.
+    #[arg(long, requires = "calib")]
+    pub image: Option<PathBuf>,
+    /// SemanticKITTI calib.txt (P2, Tr) of the image.
+    #[arg(long, requires = "image")]
+    pub calib: Option<PathBuf>,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also export the occupied voxels of --labels as a PLY point cloud.
+    #[arg(long)]
+    pub ply: Option<PathBuf>,
+    /// Height of each panel in pixels.
+    #[arg(long, default_value_t = 540)]
+    pub height: usize,
+}
+
+fn render(g: &LabelGrid, title: &str, height: usize) -> Result<RgbImage> {
+    let mut o = RenderOptions::new(g.palette);
+    o.height = height;
+    o.width = height * 16 / 9;
+    o.color_by_height = g.occupancy_only;
+    o.legend = !g.occupancy_only;
+    o.title = Some(title.to_string());
+    Ok(render_voxels(&g.classes, &g.grid, &o)?)
+}
+
+/// Renders `labels` (and optionally `pred`, an image overlay) into `out`.
+pub fn render_panels(
+    labels: &LabelGrid,
+    pred: Option<&LabelGrid>,
+    image: Option<(&Path, &Path)>,
+    out: &Path,
+    height: usize,
+) -> Result<()> {
+    let mut panels: Vec<(String, RgbImage)> = Vec::new();
+    if let Some((img_p, calib_p)) = image {
+        let img = read_png(img_p)?;
+        let calib = sk::read_calib(calib_p)?;
+        let view = calib.camera_view(img.width, img.height);
+        let shown = pred.unwrap_or(labels);
+        let mut oo = OverlayOptions::new(shown.palette);
+        oo.color_by_height = shown.occupancy_only;
+        let ov = overlay_on_image(
+            &img,
+            &shown.classes,
+            &shown.grid,
+            &view.img_from_lidar(),
+            &oo,
+        )?;
+        panels.push(("camera".into(), ov));
+    }
+    if let Some(p) = pred {
+        panels.push(("prediction".into(), render(p, "prediction", height)?));
+    }
+    panels.push(("labels".into(), render(labels, "ground truth", height)?));
+    let refs: Vec<(&str, &RgbImage)> = panels.iter().map(|(n, i)| (n.as_str(), i)).collect();
+    let img = if refs.len() == 1 {
+        refs[0].1.clone()
+    } else {
+        side_by_side(&refs)?
+    };
+    if let Some(dir) = out.parent() {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
+    write_png(out, &img)?;
+    Ok(())
+}
+
+pub fn run(args: &VizArgs) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    let labels = read_label_grid(&args.labels)?;
+    let pred = args.pred.as_deref().map(read_label_grid).transpose()?;
+    if let Some(p) = &pred {
+        anyhow::ensure!(
+            p.grid.dims == labels.grid.dims,
+            "{}: prediction grid {:?} differs from labels grid {:?}",
+            args.pred
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default(),
+            p.grid.dims,
+            labels.grid.dims
+        );
+    }
+    let image = match (&args.image, &args.calib) {
+        (Some(i), Some(c)) => Some((i.as_path(), c.as_path())),
+        _ => None,
+    };
+    render_panels(&labels, pred.as_ref(), image, &args.out, args.height)?;
+    if let Some(ply) = &args.ply {
+        let mut o = PlyOptions::new(labels.palette);
+        o.color_by_height = labels.occupancy_only;
+        let n = write_ply(ply, &labels.classes, &labels.grid, &o)?;
+        eprintln!("wrote {n} voxels to {}", ply.display());
+    }
+    eprintln!(
+        "wrote {} in {:.2} s",
+        args.out.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

@@ -1,0 +1,111 @@
+//! Reading label grids of every supported kind, with the grid they live on.
+
+use anyhow::{bail, Context, Result};
+use occ_data::formats::{occ3d, semantic_kitti as sk};
+use occ_data::labels::LearningMap;
+use occ_geometry::VoxelGrid;
+use occ_viz::Palette;
+use std::path::Path;
+
+/// A class grid ready to render or score.
+pub struct LabelGrid {
+    /// One class id per voxel, C order [x][y][z].
+    pub classes: Vec<u8>,
+    /// The grid.
+    pub grid: VoxelGrid,
+    /// The palette of the class ids.
+    pub palette: Palette,
+    /// True when the file held occupancy only (no classes).
+    pub occupancy_only: bool,
+}
+
+/// The SemanticKITTI-volume grid for `n` voxels: full (256x256x32) or a 2x/4x downsampled one; a
+/// `synthetic.json` found in an ancestor folder wins.
+fn kitti_grid_for(path: &Path, n: usize) -> Result<VoxelGrid> {
+    let mut dir = path.parent();
+    while let Some(d) = dir {
+        if let Ok(Some(meta)) = occ_data::synthetic::read_synthetic_meta(d) {
+            if meta.grid.num_voxels() == n {
+                return Ok(meta.grid);
+            }
+        }
+        dir = d.parent();
+    }
+    for f in [1, 2, 4] {
+        let g = VoxelGrid::semantic_kitti().downsampled(f);
+        if g.num_voxels() == n {
+            return Ok(g);
+        }
+    }
+    bail!(
+        "{}: {n} voxels matches no SemanticKITTI grid (256x256x32 or /2, /4) and no synthetic.json above it",
+        path.display()
+    )
+}
+
+/// Reads `.label` (raw SemanticKITTI ids), `.bin`/`.invalid`/`.occluded` (packed occupancy), `.npy`
+/// (preprocessed class grid) or `labels.npz` (Occ3D).
+pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or_default();
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or_default();
+    let len = std::fs::metadata(path)
+        .with_context(|| format!("{}: cannot read", path.display()))?
+        .len() as usize;
+    match ext {
+        "label" => {
+            let grid = kitti_grid_for(path, len / 2)?;
+            let raw = sk::read_label_raw(path, grid.num_voxels())?;
+            Ok(LabelGrid {
+                classes: LearningMap::semantic_kitti().remap(&raw),
+                grid,
+                palette: Palette::SemanticKitti,
+                occupancy_only: false,
+            })
+        }
+        "bin" | "invalid" | "occluded" => {
+            let grid = kitti_grid_for(path, len * 8)?;
+            let bits = sk::read_packed_bits(path, grid.num_voxels())?;
+            Ok(LabelGrid {
+                classes: bits,
+                grid,
+                palette: Palette::SemanticKitti,
+                occupancy_only: true,
+            })
+        }
+        "npy" => {
+            let (classes, dims) = sk::read_label_npy(path)?;
+            let f = 256 / dims[0].max(1);
+            let grid = VoxelGrid::semantic_kitti().downsampled(f.max(1));
+            anyhow::ensure!(
+                grid.dims == dims,
+                "{}: dims {dims:?} are not a SemanticKITTI grid",
+                path.display()
+            );
+            Ok(LabelGrid {
+                classes,
+                grid,
+                palette: Palette::SemanticKitti,
+                occupancy_only: false,
+            })
+        }
+        "npz" => {
+            let l = occ3d::read_labels_npz(path)?;
+            Ok(LabelGrid {
+                classes: l.semantics,
+                grid: VoxelGrid::occ3d_nuscenes(),
+                palette: Palette::Occ3d,
+                occupancy_only: false,
+            })
+        }
+        _ => bail!(
+            "{}: unknown label file '{name}' (expected .label, .bin, .npy or labels.npz)",
+            path.display()
+        ),
+    }
+}

@@ -1,0 +1,13 @@
+//! # occ-train
+//!
+//! The training and inference pipeline shared by the three models: SemanticKITTI-layout data to
+//! batches ([`dataset`]), AdamW with a no-decay parameter group, warmup + cosine schedule
+//! ([`schedule`]), clipping by global norm ([`grads`]).
+
+pub mod dataset;
+pub mod error;
+pub mod grads;
+pub mod schedule;
+pub mod trainer;
+
+pub use error::TrainError;
