@@ -196,7 +196,7 @@ where
     B: AutodiffBackend,
     M: AutodiffModule<B> + OccNetwork<B>,
 {
-    if cfg.steps == 0 || cfg.batch_size == 0 || !(cfg.lr > 0.0) {
+    if cfg.steps == 0 || cfg.batch_size == 0 || cfg.lr.is_nan() || cfg.lr <= 0.0 {
         return Err(TrainError::Config(format!(
             "steps ({}), batch_size ({}) and lr ({}) must be positive",
             cfg.steps, cfg.batch_size, cfg.lr
