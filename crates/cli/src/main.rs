@@ -3,6 +3,7 @@
 //! Commands: `demo` (the whole pipeline on built-in synthetic data), `synth`, `prepare`, `train`,
 //! `eval`, `infer`, `bench`, `viz`. Every long command shows progress and writes a JSON summary.
 
+mod cmd_demo;
 mod cmd_eval;
 mod cmd_prepare;
 mod cmd_synth;
@@ -26,6 +27,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Cmd {
+    /// The whole pipeline on built-in synthetic data (generate, fit, predict, score, render).
+    Demo(cmd_demo::DemoArgs),
     /// Generate synthetic driving scenes in the SemanticKITTI / Occ3D layouts.
     Synth(cmd_synth::SynthArgs),
     /// Check a dataset's layout and write preprocessed labels.
@@ -39,6 +42,7 @@ enum Cmd {
 fn main() {
     let cli = Cli::parse();
     let r = match &cli.cmd {
+        Cmd::Demo(a) => cmd_demo::run(a),
         Cmd::Synth(a) => cmd_synth::run(a),
         Cmd::Prepare(a) => cmd_prepare::run(a),
         Cmd::Viz(a) => cmd_viz::run(a),
