@@ -37,72 +37,15 @@ use crate::error::EvalError;
 use crate::report::{EvalReport, PerClass};
 use serde::{Deserialize, Serialize};
 
-/// SemanticKITTI learning-class names, index 0..=19 (FACTS.md §1).
-pub const SEMANTIC_KITTI_CLASSES: [&str; 20] = [
-    "empty",
-    "car",
-    "bicycle",
-    "motorcycle",
-    "truck",
-    "other-vehicle",
-    "person",
-    "bicyclist",
-    "motorcyclist",
-    "road",
-    "parking",
-    "sidewalk",
-    "other-ground",
-    "building",
-    "fence",
-    "vegetation",
-    "trunk",
-    "terrain",
-    "pole",
-    "traffic-sign",
-];
+/// SemanticKITTI learning-class names, index 0..=19 (FACTS.md §1), as defined by the reader.
+pub const SEMANTIC_KITTI_CLASSES: [&str; 20] = occ_data::formats::semantic_kitti::CLASS_NAMES;
 
 /// nuScenes-Occupancy class names, index 0..=16 (FACTS.md §3; 0 = empty, noise is ignored as 255).
-pub const NUSCENES_OCCUPANCY_CLASSES: [&str; 17] = [
-    "empty",
-    "barrier",
-    "bicycle",
-    "bus",
-    "car",
-    "construction_vehicle",
-    "motorcycle",
-    "pedestrian",
-    "traffic_cone",
-    "trailer",
-    "truck",
-    "driveable_surface",
-    "other_flat",
-    "sidewalk",
-    "terrain",
-    "manmade",
-    "vegetation",
-];
+pub const NUSCENES_OCCUPANCY_CLASSES: [&str; 17] =
+    occ_data::formats::nuscenes_occupancy::CLASS_NAMES;
 
 /// Occ3D-nuScenes class names, index 0..=17 (FACTS.md §3; 17 = free).
-pub const OCC3D_CLASSES: [&str; 18] = [
-    "others",
-    "barrier",
-    "bicycle",
-    "bus",
-    "car",
-    "construction_vehicle",
-    "motorcycle",
-    "pedestrian",
-    "traffic_cone",
-    "trailer",
-    "truck",
-    "driveable_surface",
-    "other_flat",
-    "sidewalk",
-    "terrain",
-    "manmade",
-    "vegetation",
-    "free",
-];
+pub const OCC3D_CLASSES: [&str; 18] = occ_data::formats::occ3d::CLASS_NAMES;
 
 /// Evaluation protocol (dataset).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
