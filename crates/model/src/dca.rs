@@ -1,0 +1,502 @@
+//! Deformable cross attention (DCA) from sparse voxel queries to multi-view, multi-scale image features
+//! (SparseOcc++, paper Sec. 4.2 "Contextualization via Deformable Cross Attention", after Deformable DETR
+//! and BEVFormer's spatial cross attention):
+//!
+//! `DCA(q) = 1/|V_hit| · Σ_{v ∈ V_hit} Σ_l Σ_j w_{lj} · F_{v,l}(π(p, T_v)/s_l + Δp_{lj})`
+//!
+//! - The reference point of a voxel is its centre (metres, from the [`VoxelGrid`] of its level) projected
+//!   with `CameraInput::img_from_lidar` into NETWORK-INPUT pixels `(u, v)` (pixel centres at integer
+//!   coordinates, as in `occ_geometry::camera`).
+//! - A view "sees" a voxel when the projected depth exceeds `occ_geometry::MIN_DEPTH_M` and
+//!   `0 <= u < W`, `0 <= v < H` (the same test as `occ_geometry::CameraView::in_view`). Views that do not
+//!   see a voxel are excluded from the average (`V_hit`); a voxel seen by no view gets a zero update.
+//! - On level `l` with stride `s_l` (input pixels per feature pixel), feature pixel `j` covers input
+//!   pixels `[j·s_l, (j+1)·s_l)`, so the feature coordinate of input pixel `u` is `(u + 0.5)/s_l - 0.5`.
+//!   Sampling is bilinear with zero padding and `align_corners = false`, i.e. the normalised coordinate
+//!   is `2(u + 0.5)/(s_l·w_l) - 1`.
+//! - `N_s` sampling points per head and level with offsets `Δp` (in feature pixels of that level) and
+//!   softmax attention weights (over levels × points, per head), both predicted from the query
+//!   (`feature + position encoding`) by linear layers. As in BEVFormer, offsets and weights depend on
+//!   the query only and are shared by all views (the paper's `Δp_{vj}`, `w_{vj}` carry a view index; a
+//!   query has no view-specific input to predict different ones from).
+//! - Values are the image features projected to `embed_dim` (a 1×1 linear map) and split into heads.
+//!
+//! The block around the attention is the usual post-norm transformer layer:
+//! `x = LN(f + W_o·DCA(f + pos))`, `x = LN(x + FFN(x))`.
+//!
+//! Cost: host work is one projection per (voxel, view) (a loop over coordinates); feature work is one
+//! batched bilinear sampling per level over all (voxel, view) hits, padded per image to the largest
+//! number of hits of one image.
+
+use crate::batch::CameraInput;
+use crate::error::ModelError;
+use burn::module::Param;
+use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::{relu, softmax};
+use burn::tensor::{IndexingUpdateOp, TensorData};
+use occ_geometry::{project_with, VoxelGrid};
+use occ_sparse::Coord;
+
+/// Bilinear sampling of `features [N, C, H, W]` at `grid [N, Hg, Wg, 2]` (`(x, y)` in `[-1, 1]`,
+/// `align_corners = false`, zero padding) → `[N, C, Hg, Wg]`.
+///
+/// Same signature and semantics as `crate::sample::bilinear_sample` (helper "loss"); this local copy
+/// lets the module build before that branch is merged. Swap the call when merging.
+pub(crate) fn bilinear_sample<B: Backend>(
+    features: Tensor<B, 4>,
+    grid: Tensor<B, 4>,
+) -> Tensor<B, 4> {
+    features.grid_sample_2d(grid, burn::tensor::ops::GridSampleOptions::default())
+}
+
+/// Configuration of [`DeformableCrossAttention`].
+#[derive(Config, Debug)]
+pub struct DcaConfig {
+    /// Query / value width `D` (divisible by `num_heads`).
+    pub embed_dim: usize,
+    /// Channels `C` of the image feature maps.
+    pub feat_channels: usize,
+    /// Number of image feature levels `L`.
+    #[config(default = 1)]
+    pub num_levels: usize,
+    /// Attention heads `M`.
+    #[config(default = 4)]
+    pub num_heads: usize,
+    /// Sampling points per head and level (`N_s`).
+    #[config(default = 4)]
+    pub num_points: usize,
+    /// Hidden width of the feed-forward layer, as a multiple of `embed_dim`.
+    #[config(default = 2)]
+    pub ffn_ratio: usize,
+}
+
+impl DcaConfig {
+    /// Checks the sizes.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if self.embed_dim == 0 || self.num_heads == 0 || self.embed_dim % self.num_heads != 0 {
+            return Err(ModelError::Config(format!(
+                "DCA: embed_dim {} must be a positive multiple of num_heads {}",
+                self.embed_dim, self.num_heads
+            )));
+        }
+        if self.num_levels == 0 || self.num_points == 0 || self.feat_channels == 0 {
+            return Err(ModelError::Config(format!(
+                "DCA: num_levels {}, num_points {} and feat_channels {} must be positive",
+                self.num_levels, self.num_points, self.feat_channels
+            )));
+        }
+        Ok(())
+    }
+
+    /// Initialises the block. Offsets start at Deformable DETR's pattern (head `m` points in direction
+    /// `2πm/M`, point `j` at distance `j+1` feature pixels, weight matrix zero); attention weights start
+    /// uniform (zero weight and bias).
+    pub fn init<B: Backend>(&self, device: &B::Device) -> DeformableCrossAttention<B> {
+        let d = self.embed_dim;
+        let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
+        let mut sampling_offsets = LinearConfig::new(d, m * l * p * 2)
+            .with_initializer(Initializer::Zeros)
+            .init(device);
+        let mut bias = Vec::with_capacity(m * l * p * 2);
+        for head in 0..m {
+            let theta = 2.0 * std::f64::consts::PI * head as f64 / m as f64;
+            let (c, s) = (theta.cos(), theta.sin());
+            let norm = c.abs().max(s.abs()).max(1e-12);
+            for _ in 0..l {
+                for j in 0..p {
+                    bias.push((c / norm * (j + 1) as f64) as f32);
+                    bias.push((s / norm * (j + 1) as f64) as f32);
+                }
+            }
+        }
+        sampling_offsets.bias = Some(Param::from_tensor(Tensor::from_data(
+            TensorData::new(bias, [m * l * p * 2]),
+            device,
+        )));
+        let attention_weights = LinearConfig::new(d, m * l * p)
+            .with_initializer(Initializer::Zeros)
+            .init(device);
+        let hidden = (d * self.ffn_ratio).max(1);
+        DeformableCrossAttention {
+            value_proj: LinearConfig::new(self.feat_channels, d).init(device),
+            sampling_offsets,
+            attention_weights,
+            output_proj: LinearConfig::new(d, d).init(device),
+            norm1: LayerNormConfig::new(d).init(device),
+            ffn1: LinearConfig::new(d, hidden).init(device),
+            ffn2: LinearConfig::new(hidden, d).init(device),
+            norm2: LayerNormConfig::new(d).init(device),
+            embed_dim: d,
+            feat_channels: self.feat_channels,
+            num_heads: m,
+            num_levels: l,
+            num_points: p,
+        }
+    }
+}
+
+/// Deformable cross attention block (see the module docs).
+#[derive(Module, Debug)]
+pub struct DeformableCrossAttention<B: Backend> {
+    /// Image features `C → D` (1×1).
+    pub value_proj: Linear<B>,
+    /// Query → offsets `[M, L, N_s, 2]` in feature pixels of each level.
+    pub sampling_offsets: Linear<B>,
+    /// Query → attention logits `[M, L·N_s]`.
+    pub attention_weights: Linear<B>,
+    /// Attention output `D → D`.
+    pub output_proj: Linear<B>,
+    /// Post-attention norm.
+    pub norm1: LayerNorm<B>,
+    /// FFN first layer.
+    pub ffn1: Linear<B>,
+    /// FFN second layer.
+    pub ffn2: Linear<B>,
+    /// Post-FFN norm.
+    pub norm2: LayerNorm<B>,
+    embed_dim: usize,
+    feat_channels: usize,
+    num_heads: usize,
+    num_levels: usize,
+    num_points: usize,
+}
+
+/// Which views see which query: one entry per (query, view) hit, sorted by image then query.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ViewHits {
+    /// Number of queries.
+    pub num_queries: usize,
+    /// Number of images `B·V`.
+    pub num_images: usize,
+    /// Query row of each hit.
+    pub query: Vec<u32>,
+    /// Image index `b·V + v` of each hit.
+    pub image: Vec<u32>,
+    /// Slot of each hit among the hits of its image (0-based).
+    pub slot: Vec<u32>,
+    /// Reference point `(u, v)` in network-input pixels.
+    pub uv: Vec<[f64; 2]>,
+    /// Number of views that see each query.
+    pub views_per_query: Vec<u32>,
+    /// Largest number of hits of one image.
+    pub max_per_image: usize,
+}
+
+impl ViewHits {
+    /// Number of (query, view) hits.
+    pub fn len(&self) -> usize {
+        self.query.len()
+    }
+    /// True when no view sees any query.
+    pub fn is_empty(&self) -> bool {
+        self.query.is_empty()
+    }
+}
+
+/// Projects the centres of the voxels `coords` (`(b, x, y, z)` on `grid`) into every view of their batch
+/// item and keeps the views that see them (depth > `MIN_DEPTH_M`, inside the `image_hw` image).
+///
+/// `cameras[b][v]`; every batch item must have the same number of views `V` (images are `b·V + v`).
+pub fn project_queries(
+    coords: &[Coord],
+    grid: &VoxelGrid,
+    cameras: &[Vec<CameraInput>],
+    image_hw: (usize, usize),
+) -> Result<ViewHits, ModelError> {
+    let num_views = cameras.first().map_or(0, Vec::len);
+    if cameras.iter().any(|c| c.len() != num_views) {
+        return Err(ModelError::Input(
+            "DCA: every batch item must have the same number of cameras".into(),
+        ));
+    }
+    let (h, w) = (image_hw.0 as f64, image_hw.1 as f64);
+    let num_images = cameras.len() * num_views;
+    let mut per_image: Vec<Vec<(u32, [f64; 2])>> = vec![Vec::new(); num_images];
+    let mut views_per_query = vec![0u32; coords.len()];
+    for (q, c) in coords.iter().enumerate() {
+        let b = usize::try_from(c[0])
+            .ok()
+            .filter(|&b| b < cameras.len())
+            .ok_or_else(|| {
+                ModelError::Input(format!(
+                    "DCA: voxel {q} has batch index {} but there are {} camera sets",
+                    c[0],
+                    cameras.len()
+                ))
+            })?;
+        let mut ijk = [0usize; 3];
+        for a in 0..3 {
+            ijk[a] = usize::try_from(c[a + 1])
+                .ok()
+                .filter(|&i| i < grid.dims[a])
+                .ok_or_else(|| {
+                    ModelError::Input(format!(
+                        "DCA: voxel {q} at {c:?} lies outside the grid {:?}",
+                        grid.dims
+                    ))
+                })?;
+        }
+        let centre = grid.voxel_center_m(ijk);
+        for (v, cam) in cameras[b].iter().enumerate() {
+            if let Some([u, vv, _d]) = project_with(&cam.img_from_lidar, centre) {
+                if u >= 0.0 && vv >= 0.0 && u < w && vv < h {
+                    per_image[b * num_views + v].push((q as u32, [u, vv]));
+                    views_per_query[q] += 1;
+                }
+            }
+        }
+    }
+    let total: usize = per_image.iter().map(Vec::len).sum();
+    let mut hits = ViewHits {
+        num_queries: coords.len(),
+        num_images,
+        query: Vec::with_capacity(total),
+        image: Vec::with_capacity(total),
+        slot: Vec::with_capacity(total),
+        uv: Vec::with_capacity(total),
+        views_per_query,
+        max_per_image: per_image.iter().map(Vec::len).max().unwrap_or(0),
+    };
+    for (n, list) in per_image.iter().enumerate() {
+        for (s, &(q, uv)) in list.iter().enumerate() {
+            hits.query.push(q);
+            hits.image.push(n as u32);
+            hits.slot.push(s as u32);
+            hits.uv.push(uv);
+        }
+    }
+    Ok(hits)
+}
+
+fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
+    occ_sparse::backend::index_tensor::<B>(v, device)
+}
+
+impl<B: Backend> DeformableCrossAttention<B> {
+    /// Query width `D`.
+    pub fn embed_dim(&self) -> usize {
+        self.embed_dim
+    }
+
+    /// Sampling offsets `[N, M, L, N_s, 2]` (feature pixels, `(x, y)`) and softmax attention weights
+    /// `[N, M, L, N_s]` (summing to 1 over `L·N_s` per head) predicted from `query [N, D]`.
+    pub fn sampling(&self, query: Tensor<B, 2>) -> (Tensor<B, 5>, Tensor<B, 4>) {
+        let n = query.dims()[0];
+        let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
+        let offsets = self
+            .sampling_offsets
+            .forward(query.clone())
+            .reshape([n, m, l, p, 2]);
+        let logits = self.attention_weights.forward(query).reshape([n, m, l * p]);
+        let weights = softmax(logits, 2).reshape([n, m, l, p]);
+        (offsets, weights)
+    }
+
+    /// Value maps of one level: `feats [B·V, C, h, w]` → `[B·V·M, D/M, h, w]` (head-major per image).
+    pub fn project_values(&self, feats: Tensor<B, 4>) -> Tensor<B, 4> {
+        let [n, c, h, w] = feats.dims();
+        let m = self.num_heads;
+        let dh = self.embed_dim / m;
+        let rows = feats.permute([0, 2, 3, 1]).reshape([n * h * w, c]);
+        self.value_proj
+            .forward(rows)
+            .reshape([n, h, w, m, dh])
+            .permute([0, 3, 4, 1, 2])
+            .reshape([n * m, dh, h, w])
+    }
+
+    fn check_inputs(
+        &self,
+        query: &Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<(), ModelError> {
+        let [n, d] = query.dims();
+        if d != self.embed_dim || n != hits.num_queries {
+            return Err(ModelError::Input(format!(
+                "DCA: query is [{n}, {d}] but the block has D = {} and the hits were built for {} queries",
+                self.embed_dim, hits.num_queries
+            )));
+        }
+        if feats.len() != self.num_levels || strides.len() != self.num_levels {
+            return Err(ModelError::Input(format!(
+                "DCA: {} feature levels and {} strides given, the block was built for {}",
+                feats.len(),
+                strides.len(),
+                self.num_levels
+            )));
+        }
+        for (l, (f, &s)) in feats.iter().zip(strides).enumerate() {
+            let [bv, c, h, w] = f.dims();
+            if bv != hits.num_images || c != self.feat_channels || h == 0 || w == 0 || s == 0 {
+                return Err(ModelError::Input(format!(
+                    "DCA: level {l} features {:?} (stride {s}) do not match {} images x {} channels",
+                    f.dims(),
+                    hits.num_images,
+                    self.feat_channels
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The attention itself: the view-averaged, weighted samples `[N, D]` (heads concatenated) before
+    /// the output projection, for `query [N, D]` (feature + position), image features
+    /// `feats[l] [B·V, C, h_l, w_l]` with `strides[l]` input pixels per feature pixel.
+    pub fn aggregate(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        self.check_inputs(&query, hits, feats, strides)?;
+        let device = query.device();
+        let [n, d] = query.dims();
+        if hits.is_empty() {
+            return Ok(Tensor::zeros([n, d], &device));
+        }
+        let (m, p) = (self.num_heads, self.num_points);
+        let dh = d / m;
+        let nh = hits.len();
+        let (offsets, weights) = self.sampling(query);
+        let qidx = int_tensor::<B>(&hits.query, &device);
+        let off = offsets.select(0, qidx.clone()); // [nh, M, L, P, 2]
+        let wts = weights.select(0, qidx.clone()); // [nh, M, L, P]
+        let pmax = hits.max_per_image;
+        let slot: Vec<u32> = hits
+            .image
+            .iter()
+            .zip(&hits.slot)
+            .map(|(&i, &s)| i * pmax as u32 + s)
+            .collect();
+        let slot = int_tensor::<B>(&slot, &device);
+        let mut acc: Option<Tensor<B, 3>> = None;
+        for (lvl, (f, &stride)) in feats.iter().zip(strides).enumerate() {
+            let [bv, _, fh, fw] = f.dims();
+            // Reference points, normalised for align_corners = false.
+            let sx = 2.0 / (stride as f64 * fw as f64);
+            let sy = 2.0 / (stride as f64 * fh as f64);
+            let refs: Vec<f64> = hits
+                .uv
+                .iter()
+                .flat_map(|&[u, v]| [(u + 0.5) * sx - 1.0, (v + 0.5) * sy - 1.0])
+                .collect();
+            let refs = Tensor::<B, 4>::from_data(TensorData::new(refs, [nh, 1, 1, 2]), &device);
+            let scale = Tensor::<B, 4>::from_data(
+                TensorData::new(vec![2.0 / fw as f64, 2.0 / fh as f64], [1, 1, 1, 2]),
+                &device,
+            );
+            let off_l = off.clone().narrow(2, lvl, 1).reshape([nh, m, p, 2]);
+            let loc = off_l * scale + refs; // [nh, M, P, 2]
+            let grid = Tensor::<B, 4>::zeros([bv * pmax, m, p, 2], &device)
+                .select_assign(0, slot.clone(), loc, IndexingUpdateOp::Add)
+                .reshape([bv, pmax, m, p, 2])
+                .permute([0, 2, 1, 3, 4])
+                .reshape([bv * m, pmax, p, 2]);
+            let values = self.project_values(f.clone());
+            let sampled = bilinear_sample(values, grid) // [bv*M, dh, pmax, P]
+                .reshape([bv, m, dh, pmax, p])
+                .permute([0, 3, 1, 4, 2])
+                .reshape([bv * pmax, m, p, dh])
+                .select(0, slot.clone()); // [nh, M, P, dh]
+            let w_l = wts.clone().narrow(2, lvl, 1).reshape([nh, m, p, 1]);
+            let contrib = (sampled * w_l).sum_dim(2).reshape([nh, m, dh]);
+            acc = Some(match acc {
+                Some(a) => a + contrib,
+                None => contrib,
+            });
+        }
+        let per_hit = acc
+            .unwrap_or_else(|| Tensor::zeros([nh, m, dh], &device))
+            .reshape([nh, d]);
+        let inv: Vec<f64> = hits
+            .views_per_query
+            .iter()
+            .map(|&c| if c == 0 { 0.0 } else { 1.0 / c as f64 })
+            .collect();
+        let inv = Tensor::<B, 2>::from_data(TensorData::new(inv, [n, 1]), &device);
+        Ok(Tensor::<B, 2>::zeros([n, d], &device).select_assign(
+            0,
+            qidx,
+            per_hit,
+            IndexingUpdateOp::Add,
+        ) * inv)
+    }
+
+    /// The full block: `x = LN(feats + W_o·DCA(feats + pos))`, `x = LN(x + FFN(x))`.
+    ///
+    /// # Shapes
+    /// - feats, pos: `[N, D]`; `images[l]`: `[B·V, C, h_l, w_l]` → `[N, D]`
+    pub fn forward(
+        &self,
+        feats: Tensor<B, 2>,
+        pos: Tensor<B, 2>,
+        hits: &ViewHits,
+        images: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        let attn = self.aggregate(feats.clone() + pos, hits, images, strides)?;
+        let x = self.norm1.forward(feats + self.output_proj.forward(attn));
+        let y = self.ffn2.forward(relu(self.ffn1.forward(x.clone())));
+        Ok(self.norm2.forward(x + y))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    type B64 = burn::backend::NdArray<f64>;
+
+    fn fixtures_dir() -> std::path::PathBuf {
+        let dir = std::env::var_os("SPARSEOCC_FIXTURES")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| {
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures")
+            });
+        assert!(
+            dir.is_dir(),
+            "fixtures folder {} not found: set SPARSEOCC_FIXTURES",
+            dir.display()
+        );
+        dir
+    }
+
+    fn npy(path: &std::path::Path) -> (Vec<usize>, Vec<f64>) {
+        let f = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let n = npyz::NpyFile::new(std::io::BufReader::new(f)).unwrap();
+        let shape = n.shape().iter().map(|&d| d as usize).collect();
+        (shape, n.into_vec().unwrap())
+    }
+
+    /// The sampling DCA relies on (bilinear, zero padding, align_corners = false) against the shared
+    /// PyTorch `grid_sample` fixture.
+    #[test]
+    fn bilinear_sample_matches_fixture() {
+        let dir = fixtures_dir().join("reference");
+        let device = Default::default();
+        let (fs, f) = npy(&dir.join("grid_sample_features.npy"));
+        let (gs, g) = npy(&dir.join("grid_sample_grid.npy"));
+        let (_, expected) = npy(&dir.join("grid_sample_out.npy"));
+        let feats =
+            Tensor::<B64, 4>::from_data(TensorData::new(f, [fs[0], fs[1], fs[2], fs[3]]), &device);
+        let grid =
+            Tensor::<B64, 4>::from_data(TensorData::new(g, [gs[0], gs[1], gs[2], gs[3]]), &device);
+        let got: Vec<f64> = bilinear_sample(feats, grid)
+            .into_data()
+            .convert::<f64>()
+            .to_vec::<f64>()
+            .unwrap();
+        assert_eq!(got.len(), expected.len());
+        // burn fixes a device type's float dtype process-wide at its first use, so another test of
+        // this binary may have made it f32: compare at f32 precision.
+        for (i, (a, b)) in got.iter().zip(&expected).enumerate() {
+            assert!(
+                (a - b).abs() < 1e-5 * (1.0 + b.abs()),
+                "entry {i}: {a} vs {b}"
+            );
+        }
+    }
+}

@@ -1,0 +1,566 @@
+//! SparseOcc++ assembly (paper Sec. 4): multi-scale image features → sparse anchors
+//! ([`crate::anchors`]) → SCF heads ([`crate::scf_head`]) → geometry-guided propagation
+//! ([`crate::propagation`]) → DCA on the completed set ([`crate::dca`]) → sparse U-Net
+//! ([`crate::unet`]) → per-voxel class logits at `1/2` resolution.
+//!
+//! The image encoder is not part of this module: `forward` takes its multi-scale features. Losses are
+//! not computed here either: [`PPOutput`] carries every prediction and [`pp_targets`] builds the
+//! host-side labels for all of them (`L_occ` on the final logits, `L_anchor` on every anchor level,
+//! `L_scf` on the SCF heads).
+//!
+//! Ablation switches (paper Sec. 5.5): anchors coarse-to-fine / uniform, SCF decomposed / scalar,
+//! bins / regression, propagation on / off ("off" = the "sparse anchor voxel only" row: the final
+//! stage runs on the anchors themselves and no SCF heads exist).
+
+use crate::anchors::{AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction};
+use crate::batch::Batch;
+use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
+use crate::error::ModelError;
+use crate::loss::{ce::cross_entropy, occ_loss};
+use crate::output::ModelOutput;
+use crate::propagation::propagate_anchors;
+use crate::scf_head::{
+    scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
+};
+use crate::unet::{SparseUNet, SparseUNetConfig};
+use burn::nn::{Linear, LinearConfig};
+use burn::prelude::*;
+use occ_sparse::{Coord, SparseConvBackend};
+
+/// Configuration of [`SparseOccPP`]. Defaults follow the paper where it is explicit; the choices
+/// where it is silent are documented on each field and in the module docs of the stages.
+#[derive(Config, Debug)]
+pub struct SparseOccPPConfig {
+    /// Classes including empty (class 0).
+    pub num_classes: usize,
+    /// Width `D` of anchor / voxel features.
+    pub embed_dim: usize,
+    /// Channels of the image features given to `forward`.
+    pub feat_channels: usize,
+    /// Full-resolution label grid `[X, Y, Z]` (each a multiple of 8).
+    pub full_dims: [usize; 3],
+    /// Number of image feature levels given to `forward`.
+    #[config(default = 1)]
+    pub num_feature_levels: usize,
+    /// DCA heads.
+    #[config(default = 4)]
+    pub dca_heads: usize,
+    /// DCA sampling points per head and level (`N_s`).
+    #[config(default = 4)]
+    pub dca_points: usize,
+    /// DCA feed-forward width as a multiple of `embed_dim`.
+    #[config(default = 2)]
+    pub dca_ffn_ratio: usize,
+    /// Anchor generation (paper default coarse-to-fine).
+    #[config(default = "AnchorMode::CoarseToFine")]
+    pub anchor_mode: AnchorMode,
+    /// Fraction of the CANDIDATES kept at the 1/8, 1/4, 1/2 levels (paper: 1/5 and 1/10 at levels 1
+    /// and 2; level 0 unpruned).
+    #[config(default = "vec![1.0, 0.2, 0.1]")]
+    pub keep_ratios: Vec<f64>,
+    /// `s_max^{X-Y}` (Sec. 5.4: 10).
+    #[config(default = 10)]
+    pub s_max_planar: u32,
+    /// `s_max^{Z}` (Sec. 5.4 says 5, the chosen ablation row (10, 3); DESIGN.md picks 3).
+    #[config(default = 3)]
+    pub s_max_vertical: u32,
+    /// SCF decomposition (paper default decomposed).
+    #[config(default = "ScfDecomposition::Decomposed")]
+    pub scf_decomposition: ScfDecomposition,
+    /// SCF learning (paper default bins).
+    #[config(default = "ScfLearning::Bins")]
+    pub scf_learning: ScfLearning,
+    /// Geometry-guided propagation on / off.
+    #[config(default = true)]
+    pub propagation: bool,
+    /// U-Net level widths as multiples of `embed_dim` (four levels).
+    #[config(default = "vec![1, 1, 2, 2]")]
+    pub unet_channel_mult: Vec<usize>,
+    /// Weight of `L_anchor` (the occupancy loss on every anchor level, summed over levels).
+    #[config(default = 1.0)]
+    pub anchor_loss_weight: f64,
+    /// Weight of `L_scf` (CE on the planar and vertical bins, or L1 in the regression ablation).
+    #[config(default = 1.0)]
+    pub scf_loss_weight: f64,
+}
+
+impl SparseOccPPConfig {
+    fn dca(&self) -> DcaConfig {
+        DcaConfig::new(self.embed_dim, self.feat_channels)
+            .with_num_levels(self.num_feature_levels)
+            .with_num_heads(self.dca_heads)
+            .with_num_points(self.dca_points)
+            .with_ffn_ratio(self.dca_ffn_ratio)
+    }
+
+    /// The anchor generator's configuration.
+    pub fn anchor_config(&self) -> AnchorGeneratorConfig {
+        AnchorGeneratorConfig::new(self.embed_dim, self.num_classes, self.full_dims, self.dca())
+            .with_mode(self.anchor_mode)
+            .with_keep_ratios(self.keep_ratios.clone())
+    }
+
+    /// The SCF heads' configuration.
+    pub fn scf_config(&self) -> ScfHeadConfig {
+        ScfHeadConfig::new(self.embed_dim)
+            .with_s_max_planar(self.s_max_planar)
+            .with_s_max_vertical(self.s_max_vertical)
+            .with_decomposition(self.scf_decomposition)
+            .with_learning(self.scf_learning)
+    }
+
+    /// The U-Net's configuration.
+    pub fn unet_config(&self) -> SparseUNetConfig {
+        SparseUNetConfig::new(
+            self.embed_dim,
+            self.unet_channel_mult
+                .iter()
+                .map(|m| m * self.embed_dim)
+                .collect(),
+        )
+    }
+
+    /// The output grid `full_dims / 2`.
+    pub fn out_dims(&self) -> [usize; 3] {
+        self.full_dims.map(|d| d / 2)
+    }
+
+    /// Checks every size and switch.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        self.anchor_config().validate()?;
+        self.scf_config().validate()?;
+        self.unet_config().validate()
+    }
+
+    /// Initialises the model. Never panics on a bad configuration: [`SparseOccPP::forward`] validates
+    /// it first (use [`SparseOccPPConfig::try_init`] to fail early).
+    pub fn init<B: SparseConvBackend>(&self, device: &B::Device) -> SparseOccPP<B> {
+        let unet = self.unet_config();
+        let c0 = unet.channels.first().copied().unwrap_or(1).max(1);
+        SparseOccPP {
+            anchors: self.anchor_config().init(device),
+            scf: self.propagation.then(|| self.scf_config().init(device)),
+            dca: self.dca().init(device),
+            unet: unet.init(device),
+            head: LinearConfig::new(c0, self.num_classes.max(1)).init(device),
+            config: self.clone(),
+        }
+    }
+
+    /// Validates, then initialises.
+    pub fn try_init<B: SparseConvBackend>(
+        &self,
+        device: &B::Device,
+    ) -> Result<SparseOccPP<B>, ModelError> {
+        self.validate()?;
+        Ok(self.init(device))
+    }
+}
+
+/// The SparseOcc++ network (without the image encoder).
+#[derive(Module, Debug)]
+pub struct SparseOccPP<B: Backend> {
+    /// Sparse anchor generation.
+    pub anchors: AnchorGenerator<B>,
+    /// SCF heads (present when propagation is on).
+    pub scf: Option<ScfHead<B>>,
+    /// DCA on the completed voxel set.
+    pub dca: DeformableCrossAttention<B>,
+    /// Sparse U-Net.
+    pub unet: SparseUNet<B>,
+    /// Final classifier.
+    pub head: Linear<B>,
+    config: SparseOccPPConfig,
+}
+
+/// Everything SparseOcc++ predicts.
+#[derive(Clone, Debug)]
+pub struct PPOutput<B: Backend> {
+    /// Final voxels `(b, x, y, z)` on `full/2`, logits `[N, num_classes]`, `upsample = 2`, stats;
+    /// `losses` is left empty.
+    pub out: ModelOutput<B>,
+    /// Per anchor level (1/8, 1/4, 1/2; one level for uniform anchors): candidates and class logits.
+    pub anchor_levels: Vec<LevelPrediction<B>>,
+    /// SCF predictions on the anchors (`None` when propagation is off).
+    pub scf: Option<ScfPrediction<B>>,
+}
+
+impl<B: SparseConvBackend> SparseOccPP<B> {
+    /// The configuration the model was built from.
+    pub fn config(&self) -> &SparseOccPPConfig {
+        &self.config
+    }
+
+    fn check_inputs(
+        &self,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+        batch: &Batch<B>,
+    ) -> Result<(), ModelError> {
+        let cfg = &self.config;
+        if batch.grid.dims != cfg.full_dims {
+            return Err(ModelError::Input(format!(
+                "SparseOcc++: batch grid {:?} but the model was built for {:?}",
+                batch.grid.dims, cfg.full_dims
+            )));
+        }
+        let (bsz, nv) = (batch.batch_size(), batch.num_views());
+        if batch.cameras.len() != bsz || batch.cameras.iter().any(|c| c.len() != nv) {
+            return Err(ModelError::Input(format!(
+                "SparseOcc++: images are [{bsz}, {nv}, ...] but cameras are {:?}",
+                batch.cameras.iter().map(Vec::len).collect::<Vec<_>>()
+            )));
+        }
+        if feats.len() != cfg.num_feature_levels || strides.len() != feats.len() {
+            return Err(ModelError::Input(format!(
+                "SparseOcc++: {} feature levels and {} strides, configured for {}",
+                feats.len(),
+                strides.len(),
+                cfg.num_feature_levels
+            )));
+        }
+        for (l, f) in feats.iter().enumerate() {
+            let [n, c, _, _] = f.dims();
+            if n != bsz * nv || c != cfg.feat_channels {
+                return Err(ModelError::Input(format!(
+                    "SparseOcc++: feature level {l} is {:?}, expected [{}, {}, h, w] (view-major per item)",
+                    f.dims(),
+                    bsz * nv,
+                    cfg.feat_channels
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs the network.
+    ///
+    /// # Shapes
+    /// - `feats[l]`: `[B·V, C, h_l, w_l]` (image `b·V + v`), `strides[l]` input pixels per feature pixel
+    /// - returns logits `[N, num_classes]` on `N` voxels of `full_dims / 2`
+    pub fn forward(
+        &self,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+        batch: &Batch<B>,
+    ) -> Result<PPOutput<B>, ModelError> {
+        self.config.validate()?;
+        self.check_inputs(feats, strides, batch)?;
+        let cfg = &self.config;
+        let out_dims = cfg.out_dims();
+        let gen = self.anchors.forward(feats, strides, batch)?;
+        crate::profile::mark("anchors", gen.anchors.feats());
+        let mut stats = gen.stats;
+        let anchors = gen.anchors;
+        stats.push(("anchors".to_string(), anchors.num_active()));
+
+        let (completed, scf) = match &self.scf {
+            Some(head) if cfg.propagation => {
+                let pred =
+                    head.predict(anchors.coords().to_vec(), out_dims, anchors.feats().clone());
+                let (completed, new) = propagate_anchors(
+                    &anchors,
+                    &pred.s_planar,
+                    &pred.s_vertical,
+                    pred.decomposition,
+                )?;
+                stats.push(("propagated_new".to_string(), new));
+                (completed, Some(pred))
+            }
+            _ => (anchors, None),
+        };
+        stats.push(("completed".to_string(), completed.num_active()));
+        crate::profile::mark("scf+propagation", completed.feats());
+
+        // DCA on the completed set (new voxels start from zero features).
+        let device = completed.device();
+        let grid = batch.grid.downsampled(2);
+        let pos = self
+            .anchors
+            .pos
+            .encode(completed.coords(), out_dims, &device);
+        let hits = project_queries(completed.coords(), &grid, &batch.cameras, batch.image_hw())?;
+        let x = self
+            .dca
+            .forward(completed.feats().clone(), pos, &hits, feats, strides)?;
+        crate::profile::mark("dca", &x);
+        let x = self.unet.forward(completed.with_feats(x)?)?;
+        crate::profile::mark("unet", x.feats());
+        let coords: Vec<Coord> = x.coords().to_vec();
+        let logits = self.head.forward(x.into_feats());
+        crate::profile::mark("head", &logits);
+        stats.push(("final".to_string(), coords.len()));
+        Ok(PPOutput {
+            out: ModelOutput {
+                coords,
+                logits,
+                out_dims,
+                upsample: 2,
+                losses: Vec::new(),
+                stats,
+            },
+            anchor_levels: gen.levels,
+            scf,
+        })
+    }
+}
+
+/// Host-side labels for every prediction of [`PPOutput`] (255 = ignore everywhere).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PPTargets {
+    /// Class label of each final voxel (`out.coords` order): the MonoScene rule on its 2×2×2 children.
+    pub labels: Vec<u8>,
+    /// Per anchor level, the class label of each candidate (`coords` order): the MonoScene rule on its
+    /// `factor³` full-resolution children.
+    pub anchor_labels: Vec<Vec<u8>>,
+    /// SCF bin targets of the anchors (present when `scf` is).
+    pub scf: Option<ScfTargets>,
+}
+
+/// Label of a `ds³` block by the MonoScene / SSC downsampling rule (FACTS.md §1 `_downsample_label`):
+/// if empty (0) and ignore (255) voxels are more than 95 % of the block, the block is 0 when there are
+/// more 0s than 255s and 255 otherwise (ties → 255); else the most frequent label in `1..=254` (ties →
+/// the smaller id). `labels` yields the block's labels.
+pub fn monoscene_block_label(labels: impl Iterator<Item = u8>, ds: usize) -> u8 {
+    let mut counts = [0u32; 256];
+    for l in labels {
+        counts[l as usize] += 1;
+    }
+    let (n0, n255) = (counts[0] as f64, counts[255] as f64);
+    let cells = (ds * ds * ds) as f64;
+    if n0 + n255 > 0.95 * cells {
+        return if n0 > n255 { 0 } else { 255 };
+    }
+    let (mut best, mut best_n) = (0usize, 0u32);
+    for (c, &n) in counts.iter().enumerate().take(255).skip(1) {
+        if n > best_n {
+            best = c;
+            best_n = n;
+        }
+    }
+    best as u8
+}
+
+/// The whole full-resolution grid downsampled by `ds` with [`monoscene_block_label`] (flat
+/// `[X/ds][Y/ds][Z/ds]`). Voxels of incomplete blocks at the upper border are dropped (dims must be
+/// multiples of `ds` for an exact result).
+pub fn downsample_labels(full: &[u8], full_dims: [usize; 3], ds: usize) -> Vec<u8> {
+    let ds = ds.max(1);
+    let d = full_dims.map(|n| n / ds);
+    let [fy, fz] = [full_dims[1], full_dims[2]];
+    let mut out = Vec::with_capacity(d[0] * d[1] * d[2]);
+    for x in 0..d[0] {
+        for y in 0..d[1] {
+            for z in 0..d[2] {
+                let it = (0..ds).flat_map(move |dx| {
+                    (0..ds).flat_map(move |dy| {
+                        (0..ds).map(move |dz| {
+                            ((x * ds + dx) * fy + (y * ds + dy)) * fz + (z * ds + dz)
+                        })
+                    })
+                });
+                out.push(monoscene_block_label(
+                    it.map(|i| full.get(i).copied().unwrap_or(255)),
+                    ds,
+                ));
+            }
+        }
+    }
+    out
+}
+
+fn lookup(coords: &[Coord], grids: &[Vec<u8>], dims: [usize; 3]) -> Result<Vec<u8>, ModelError> {
+    coords
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let b = usize::try_from(c[0]).ok().filter(|&b| b < grids.len());
+            let inside = (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < dims[a]);
+            match (b, inside) {
+                (Some(b), true) => {
+                    Ok(grids[b]
+                        [(c[1] as usize * dims[1] + c[2] as usize) * dims[2] + c[3] as usize])
+                }
+                _ => Err(ModelError::Input(format!(
+                    "targets: voxel {i} at {c:?} outside {} items of {dims:?}",
+                    grids.len()
+                ))),
+            }
+        })
+        .collect()
+}
+
+/// Builds the labels for every prediction in `out` from the full-resolution `batch.target`.
+pub fn pp_targets<B: Backend>(
+    out: &PPOutput<B>,
+    batch: &Batch<B>,
+    cfg: &SparseOccPPConfig,
+) -> Result<PPTargets, ModelError> {
+    let target = batch
+        .target
+        .as_ref()
+        .ok_or_else(|| ModelError::Input("targets: the batch has no target".into()))?;
+    let full_dims = batch.grid.dims;
+    if full_dims != cfg.full_dims {
+        return Err(ModelError::Input(format!(
+            "targets: batch grid {full_dims:?} but the config has {:?}",
+            cfg.full_dims
+        )));
+    }
+    let volume: usize = full_dims.iter().product();
+    if let Some((b, t)) = target.iter().enumerate().find(|(_, t)| t.len() != volume) {
+        return Err(ModelError::Input(format!(
+            "targets: item {b} has {} labels, the grid {full_dims:?} has {volume}",
+            t.len()
+        )));
+    }
+    let mut cache: Vec<(usize, Vec<Vec<u8>>)> = Vec::new();
+    let mut grids_for = |ds: usize| -> Vec<Vec<u8>> {
+        if let Some((_, g)) = cache.iter().find(|(f, _)| *f == ds) {
+            return g.clone();
+        }
+        let g: Vec<Vec<u8>> = target
+            .iter()
+            .map(|t| downsample_labels(t, full_dims, ds))
+            .collect();
+        cache.push((ds, g.clone()));
+        g
+    };
+    let half = grids_for(2);
+    let half_dims = full_dims.map(|d| d / 2);
+    let labels = lookup(&out.out.coords, &half, half_dims)?;
+    let mut anchor_labels = Vec::with_capacity(out.anchor_levels.len());
+    for lvl in &out.anchor_levels {
+        let g = if lvl.factor == 2 {
+            half.clone()
+        } else {
+            grids_for(lvl.factor)
+        };
+        anchor_labels.push(lookup(&lvl.coords, &g, lvl.dims)?);
+    }
+    let scf = match &out.scf {
+        Some(p) => Some(scf_targets(
+            &p.coords,
+            &half,
+            half_dims,
+            p.decomposition,
+            p.s_max_planar,
+            p.s_max_vertical,
+        )?),
+        None => None,
+    };
+    Ok(PPTargets {
+        labels,
+        anchor_labels,
+        scf,
+    })
+}
+
+impl<B: Backend> PPOutput<B> {
+    /// The training objective of paper Sec. 4.4, `L = L_occ + L_anchor + L_scf` (DESIGN.md "Losses"):
+    /// - `occ.*`: [`occ_loss`] (weighted CE + Lovasz-softmax + geo_scal + sem_scal) on the final voxels
+    ///   against their MonoScene-rule labels;
+    /// - `anchor{l}.*`: the same four terms on every candidate of anchor level `l`, times
+    ///   `anchor_loss_weight`;
+    /// - `scf.planar`, `scf.vertical`: CE on the SCF bins against the Algorithm-2 targets (or an L1
+    ///   regression of `bin − s_max` in the regression ablation), times `scf_loss_weight`.
+    ///
+    /// Terms whose labels are all ignored are left out. `class_weights`: `num_classes` weights.
+    pub fn losses(
+        &self,
+        batch: &Batch<B>,
+        cfg: &SparseOccPPConfig,
+        class_weights: &[f64],
+    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+        if class_weights.len() != cfg.num_classes {
+            return Err(ModelError::Input(format!(
+                "SparseOcc++ losses: {} class weights for {} classes",
+                class_weights.len(),
+                cfg.num_classes
+            )));
+        }
+        let t = pp_targets(self, batch, cfg)?;
+        let mut out = Vec::new();
+        let any_valid = |l: &[u8]| l.iter().any(|&v| v != IGNORE);
+        if any_valid(&t.labels) {
+            for (name, l) in occ_loss(self.out.logits.clone(), &t.labels, class_weights)? {
+                out.push((format!("occ.{name}"), l));
+            }
+        }
+        if cfg.anchor_loss_weight != 0.0 {
+            for (i, (lvl, labels)) in self.anchor_levels.iter().zip(&t.anchor_labels).enumerate() {
+                if !any_valid(labels) {
+                    continue;
+                }
+                for (name, l) in occ_loss(lvl.logits.clone(), labels, class_weights)? {
+                    out.push((
+                        format!("anchor{i}.{name}"),
+                        l.mul_scalar(cfg.anchor_loss_weight),
+                    ));
+                }
+            }
+        }
+        if let (Some(pred), Some(tg)) = (&self.scf, &t.scf) {
+            if cfg.scf_loss_weight != 0.0 {
+                let parts = [
+                    (
+                        "scf.planar",
+                        Some(&pred.planar),
+                        Some(&tg.planar),
+                        pred.s_max_planar,
+                    ),
+                    (
+                        "scf.vertical",
+                        pred.vertical.as_ref(),
+                        tg.vertical.as_ref(),
+                        pred.s_max_vertical,
+                    ),
+                ];
+                for (name, p, labels, s_max) in parts {
+                    let (Some(p), Some(labels)) = (p, labels) else {
+                        continue;
+                    };
+                    if !any_valid(labels) {
+                        continue;
+                    }
+                    let l = match pred.learning {
+                        ScfLearning::Bins => cross_entropy(p.clone(), labels, IGNORE)?,
+                        ScfLearning::Regression => scf_l1(p, labels, s_max)?,
+                    };
+                    out.push((name.to_string(), l.mul_scalar(cfg.scf_loss_weight)));
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+const IGNORE: u8 = 255;
+
+/// Mean `|p − (bin − s_max)|` over the anchors whose bin is not ignored (`p`: `[N, 1]`).
+fn scf_l1<B: Backend>(
+    p: &Tensor<B, 2>,
+    bins: &[u8],
+    s_max: u32,
+) -> Result<Tensor<B, 1>, ModelError> {
+    let [n, k] = p.dims();
+    if bins.len() != n || k != 1 {
+        return Err(ModelError::Input(format!(
+            "SCF regression: prediction {:?} for {} targets",
+            p.dims(),
+            bins.len()
+        )));
+    }
+    let device = p.device();
+    let (rows, vals): (Vec<i64>, Vec<f32>) = bins
+        .iter()
+        .enumerate()
+        .filter(|(_, &b)| b != IGNORE)
+        .map(|(i, &b)| (i as i64, b as f32 - s_max as f32))
+        .unzip();
+    let m = rows.len();
+    let idx = Tensor::<B, 1, Int>::from_data(TensorData::new(rows, [m]), &device);
+    let target = Tensor::<B, 1>::from_data(TensorData::new(vals, [m]), &device);
+    let sel = p.clone().reshape([n]).select(0, idx);
+    Ok((sel - target).abs().mean())
+}

@@ -1,0 +1,165 @@
+//! Deformable cross attention against a direct computation: projection, view exclusion, bilinear
+//! sampling at `(u + 0.5)/stride - 0.5 + offset` feature pixels, softmax weights, view averaging.
+
+use crate::pp_common;
+
+use burn::module::Param;
+use burn::prelude::*;
+use occ_geometry::transform_point;
+use occ_model::dca::{project_queries, DcaConfig};
+use pp_common::*;
+
+type B64 = burn::backend::NdArray<f64>;
+
+/// Bilinear sample of a `[h, w]` map at feature-pixel `(x, y)`, zero outside (align_corners = false
+/// with pixel centres at integers).
+fn bilinear(map: &[f64], h: usize, w: usize, x: f64, y: f64) -> f64 {
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let mut acc = 0.0;
+    for (dx, wx) in [(0.0, 1.0 - fx), (1.0, fx)] {
+        for (dy, wy) in [(0.0, 1.0 - fy), (1.0, fy)] {
+            let (xi, yi) = (x0 + dx, y0 + dy);
+            if xi >= 0.0 && yi >= 0.0 && (xi as usize) < w && (yi as usize) < h {
+                acc += wx * wy * map[yi as usize * w + xi as usize];
+            }
+        }
+    }
+    acc
+}
+
+#[test]
+fn dca_excludes_views_that_do_not_see_the_voxel() {
+    let device = Default::default();
+    let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
+    let mut dca = DcaConfig::new(d, FEAT_C)
+        .with_num_levels(l)
+        .with_num_heads(m)
+        .with_num_points(p)
+        .init::<B64>(&device);
+    // Query-dependent offsets and weights (the init makes them constant).
+    dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 11, &device) * 2.0);
+    dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 12, &device));
+    let g = grid();
+    let cams = cameras(1);
+    // A: behind camera 0, seen by camera 1. B: seen by both. C: seen by none.
+    let coords = vec![[0, 5, 16, 4], [0, 25, 14, 5], [0, 0, 31, 4], [0, 9, 20, 2]];
+    let hits = project_queries(&coords, &g, &cams, IMG_HW).unwrap();
+    assert_eq!(hits.views_per_query, vec![1, 2, 0, 1]);
+    let feats = features::<B64>(1, 7, &device);
+    let query = randn::<B64, 2>([coords.len(), d], 13, &device);
+    let got = to_f64(
+        &dca.aggregate(query.clone(), &hits, &feats, &STRIDES)
+            .unwrap(),
+    );
+
+    // Direct computation.
+    let (off, wts) = dca.sampling(query);
+    let (off, wts) = (to_f64(&off), to_f64(&wts));
+    let dh = d / m;
+    let values: Vec<(Vec<f64>, usize, usize)> = feats
+        .iter()
+        .map(|f| {
+            let [_, _, h, w] = f.dims();
+            (to_f64(&dca.project_values(f.clone())), h, w)
+        })
+        .collect();
+    let mut checked_zero_pad = false;
+    for (q, c) in coords.iter().enumerate() {
+        let centre = g.voxel_center_m([c[1] as usize, c[2] as usize, c[3] as usize]);
+        let mut expected = vec![0.0; d];
+        let mut seen = 0;
+        for (v, cam) in cams[0].iter().enumerate() {
+            let t = transform_point(&cam.img_from_lidar, centre);
+            if t[2] <= 1e-3 {
+                continue;
+            }
+            let (u, vv) = (t[0] / t[2], t[1] / t[2]);
+            if !(u >= 0.0 && vv >= 0.0 && u < IMG_HW.1 as f64 && vv < IMG_HW.0 as f64) {
+                continue;
+            }
+            seen += 1;
+            for head in 0..m {
+                for (lvl, (vals, h, w)) in values.iter().enumerate() {
+                    let s = STRIDES[lvl] as f64;
+                    for j in 0..p {
+                        let base = (((q * m + head) * l + lvl) * p + j) * 2;
+                        let x = (u + 0.5) / s - 0.5 + off[base];
+                        let y = (vv + 0.5) / s - 0.5 + off[base + 1];
+                        if x < -1.0 || y < -1.0 || x > *w as f64 || y > *h as f64 {
+                            checked_zero_pad = true;
+                        }
+                        let wgt = wts[((q * m + head) * l + lvl) * p + j];
+                        for ch in 0..dh {
+                            let img = v * m + head; // [B·V·M] with b = 0
+                            let map = &vals[(img * dh + ch) * h * w..][..h * w];
+                            expected[head * dh + ch] += wgt * bilinear(map, *h, *w, x, y);
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(seen, hits.views_per_query[q]);
+        for e in expected.iter_mut() {
+            if seen > 0 {
+                *e /= seen as f64;
+            }
+        }
+        for ch in 0..d {
+            let (a, b) = (got[q * d + ch], expected[ch]);
+            assert!((a - b).abs() < 1e-9, "query {q} channel {ch}: {a} vs {b}");
+        }
+        if seen == 0 {
+            assert!(got[q * d..(q + 1) * d].iter().all(|&v| v == 0.0));
+        }
+    }
+    assert!(checked_zero_pad, "offsets never left the feature map");
+    // Query A (behind camera 0) gives exactly what camera 1 alone gives: drop camera 0 and its images.
+    let only_a = vec![coords[0], coords[3]];
+    let cam1 = vec![vec![cams[0][1].clone()]];
+    let hits_a = project_queries(&only_a, &g, &cam1, IMG_HW).unwrap();
+    assert_eq!(hits_a.views_per_query, vec![1, 1]);
+    let feats1: Vec<Tensor<B64, 4>> = feats.iter().map(|f| f.clone().narrow(0, 1, 1)).collect();
+    let q_a = randn::<B64, 2>([coords.len(), d], 13, &device)
+        .select(0, Tensor::<B64, 1, Int>::from_data([0i64, 3], &device));
+    let alone = to_f64(&dca.aggregate(q_a, &hits_a, &feats1, &STRIDES).unwrap());
+    for (i, q) in [0usize, 3].iter().enumerate() {
+        for ch in 0..d {
+            let (a, b) = (alone[i * d + ch], got[q * d + ch]);
+            assert!((a - b).abs() < 1e-12, "query {q} channel {ch}: {a} vs {b}");
+        }
+    }
+}
+
+#[test]
+fn dca_block_shapes_and_bad_inputs() {
+    let device = Default::default();
+    let dca = DcaConfig::new(8, FEAT_C)
+        .with_num_levels(2)
+        .with_num_heads(2)
+        .init::<NB>(&device);
+    let g = grid();
+    let coords: Vec<[i32; 4]> = (0..2)
+        .flat_map(|b| (0..32).map(move |x| [b, x, (x * 7) % 32, x % 8]))
+        .collect();
+    let hits = project_queries(&coords, &g, &cameras(2), IMG_HW).unwrap();
+    assert_eq!(hits.num_images, 4);
+    assert!(hits.image.windows(2).all(|w| w[0] <= w[1]));
+    let feats = features::<NB>(2, 1, &device);
+    let f = randn::<NB, 2>([coords.len(), 8], 2, &device);
+    let pos = randn::<NB, 2>([coords.len(), 8], 3, &device);
+    let out = dca
+        .forward(f.clone(), pos.clone(), &hits, &feats, &STRIDES)
+        .unwrap();
+    assert_eq!(out.dims(), [coords.len(), 8]);
+    assert!(to_f64(&out).iter().all(|v| v.is_finite()));
+    // Wrong number of levels, wrong channels, voxel outside the grid, batch index without cameras.
+    assert!(dca
+        .forward(f.clone(), pos.clone(), &hits, &feats[..1], &STRIDES[..1])
+        .is_err());
+    let wrong = vec![feats[0].clone().narrow(1, 0, 4), feats[1].clone()];
+    assert!(dca.forward(f, pos, &hits, &wrong, &STRIDES).is_err());
+    assert!(project_queries(&[[0, 32, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
+    assert!(project_queries(&[[1, 0, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
+    assert!(DcaConfig::new(8, 4).with_num_heads(3).validate().is_err());
+}

@@ -1,0 +1,369 @@
+//! SparseOcc++ end to end on a tiny configuration: shapes at every stage, gradients to every parameter
+//! group, the ablation switches, and the propagation inside the model against Algorithm 1.
+
+use crate::pp_common;
+
+use burn::module::Param;
+use burn::prelude::*;
+use occ_model::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
+use occ_model::scf_head::{ScfDecomposition, ScfLearning};
+use occ_model::sparseocc_pp::{PPOutput, SparseOccPP, SparseOccPPConfig};
+use pp_common::*;
+
+fn tiny_config() -> SparseOccPPConfig {
+    SparseOccPPConfig::new(6, 8, FEAT_C, FULL_DIMS)
+        .with_num_feature_levels(2)
+        .with_dca_heads(2)
+        .with_dca_points(2)
+        .with_s_max_planar(4)
+        .with_s_max_vertical(2)
+}
+
+fn run<B: occ_sparse::SparseConvBackend>(
+    cfg: &SparseOccPPConfig,
+    bsz: usize,
+    seed: u64,
+) -> (SparseOccPP<B>, PPOutput<B>) {
+    let device = Default::default();
+    let model: SparseOccPP<B> = cfg.try_init(&device).expect("valid config");
+    let batch = batch::<B>(bsz, seed, &device);
+    let feats = features::<B>(bsz, seed + 100, &device);
+    let out = model.forward(&feats, &STRIDES, &batch).expect("forward");
+    (model, out)
+}
+
+fn sum_all<B: Backend>(out: &PPOutput<B>) -> Tensor<B, 1> {
+    let mut loss = out.out.logits.clone().sum();
+    for l in &out.anchor_levels {
+        loss = loss + l.logits.clone().sum();
+    }
+    if let Some(s) = &out.scf {
+        loss = loss + s.planar.clone().sum();
+        if let Some(v) = &s.vertical {
+            loss = loss + v.clone().sum();
+        }
+    }
+    loss
+}
+
+#[test]
+fn shapes_at_every_stage() {
+    let cfg = tiny_config();
+    let bsz = 2;
+    let (_, out) = run::<NB>(&cfg, bsz, 1);
+    // Anchor levels: 1/8 (4x4x1, dense), 1/4, 1/2.
+    assert_eq!(out.anchor_levels.len(), 3);
+    let dims = [[4, 4, 1], [8, 8, 2], [16, 16, 4]];
+    let mut candidates = 16;
+    for (r, lvl) in out.anchor_levels.iter().enumerate() {
+        assert_eq!(lvl.dims, dims[r]);
+        assert_eq!(lvl.factor, [8, 4, 2][r]);
+        assert_eq!(lvl.coords.len(), bsz * candidates, "level {r}");
+        assert_eq!(lvl.logits.dims(), [bsz * candidates, 6]);
+        let k = occ_model::anchors::keep_count(candidates, cfg.keep_ratios[r]);
+        assert_eq!(lvl.kept.len(), bsz * k);
+        for c in &lvl.coords {
+            assert!((0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < lvl.dims[a]));
+        }
+        candidates = 8 * k;
+    }
+    let n_anchor = bsz * chain_anchor_count(16, &cfg.keep_ratios);
+    let scf = out.scf.as_ref().expect("propagation on");
+    assert_eq!(scf.coords.len(), n_anchor);
+    assert_eq!(scf.dims, [16, 16, 4]);
+    assert_eq!(scf.planar.dims(), [n_anchor, 9]);
+    assert_eq!(scf.vertical.as_ref().unwrap().dims(), [n_anchor, 5]);
+    assert_eq!(scf.s_planar.len(), n_anchor);
+    assert!(scf.s_planar.iter().all(|s| s.abs() <= 4));
+    assert!(scf.s_vertical.iter().all(|s| s.abs() <= 2));
+    // Final output on 1/2 res: anchors ⊂ final, logits per voxel.
+    let n = out.out.coords.len();
+    assert!(n >= n_anchor);
+    assert_eq!(out.out.logits.dims(), [n, 6]);
+    assert_eq!(out.out.out_dims, [16, 16, 4]);
+    assert_eq!(out.out.upsample, 2);
+    assert!(out.out.losses.is_empty());
+    let stat = |k: &str| out.out.stats.iter().find(|(n, _)| n == k).map(|s| s.1);
+    assert_eq!(stat("anchors"), Some(n_anchor));
+    assert_eq!(stat("final"), Some(n));
+    assert_eq!(stat("completed"), Some(n));
+    assert_eq!(stat("propagated_new"), Some(n - n_anchor));
+    for a in &scf.coords {
+        assert!(out.out.coords.contains(a));
+    }
+    assert!(to_f64(&out.out.logits).iter().all(|v| v.is_finite()));
+    let dense = out.out.dense_prediction(bsz, FULL_DIMS);
+    assert_eq!(dense.len(), bsz);
+}
+
+#[test]
+fn gradients_reach_every_parameter() {
+    let cfg = tiny_config();
+    let (model, out) = run::<AD>(&cfg, 2, 2);
+    let grads = sum_all(&out).backward();
+    let n = assert_all_grads(&model, &grads);
+    assert!(n > 50, "only {n} parameters visited");
+}
+
+#[test]
+fn ablations_run_and_train() {
+    let variants = [
+        tiny_config().with_anchor_mode(AnchorMode::Uniform),
+        tiny_config().with_scf_decomposition(ScfDecomposition::Scalar),
+        tiny_config().with_scf_learning(ScfLearning::Regression),
+        tiny_config().with_propagation(false),
+    ];
+    for (i, cfg) in variants.iter().enumerate() {
+        let (model, out) = run::<AD>(cfg, 1, 10 + i as u64);
+        match i {
+            0 => {
+                assert_eq!(out.anchor_levels.len(), 1);
+                assert_eq!(
+                    out.anchor_levels[0].coords.len(),
+                    chain_anchor_count(16, &cfg.keep_ratios)
+                );
+            }
+            1 => {
+                let s = out.scf.as_ref().unwrap();
+                assert!(s.vertical.is_none() && s.s_vertical.is_empty());
+                assert_eq!(s.planar.dims()[1], 9);
+            }
+            2 => {
+                let s = out.scf.as_ref().unwrap();
+                assert_eq!(s.planar.dims()[1], 1);
+                assert_eq!(s.vertical.as_ref().unwrap().dims()[1], 1);
+            }
+            _ => {
+                assert!(out.scf.is_none());
+                let anchors = out.anchor_levels[2].kept.len();
+                assert_eq!(out.out.coords.len(), anchors);
+            }
+        }
+        let grads = sum_all(&out).backward();
+        assert_all_grads(&model, &grads);
+    }
+}
+
+/// Literal Algorithm 1 on a dense grid: for each s_j, max-pool (dilate) the anchors with s = -s_j by
+/// the planar and vertical kernels, union with the anchors.
+fn algorithm1_dense(
+    anchors: &[[i32; 3]],
+    sp: &[i32],
+    sv: &[i32],
+    dims: [usize; 3],
+    s_max: i32,
+) -> Vec<u8> {
+    let [nx, ny, nz] = dims;
+    let idx = |x: i64, y: i64, z: i64| -> Option<usize> {
+        (x >= 0 && y >= 0 && z >= 0 && (x as usize) < nx && (y as usize) < ny && (z as usize) < nz)
+            .then(|| (x as usize * ny + y as usize) * nz + z as usize)
+    };
+    let mut m = vec![0u8; nx * ny * nz];
+    for a in anchors {
+        m[idx(a[0] as i64, a[1] as i64, a[2] as i64).unwrap()] = 1;
+    }
+    for sj in 1..=s_max {
+        // Planar component: kernel [2sj+1, 2sj+1, 1]; vertical: [1, 1, 2sj+1].
+        for (which, s) in [(0, sp), (1, sv)] {
+            let mut mj = vec![0u8; nx * ny * nz];
+            for (a, &sa) in anchors.iter().zip(s) {
+                if sa == -sj {
+                    mj[idx(a[0] as i64, a[1] as i64, a[2] as i64).unwrap()] = 1;
+                }
+            }
+            let r = sj as i64;
+            let (rx, ry, rz) = if which == 0 { (r, r, 0) } else { (0, 0, r) };
+            for x in 0..nx as i64 {
+                for y in 0..ny as i64 {
+                    for z in 0..nz as i64 {
+                        let mut any = false;
+                        for dx in -rx..=rx {
+                            for dy in -ry..=ry {
+                                for dz in -rz..=rz {
+                                    if let Some(i) = idx(x + dx, y + dy, z + dz) {
+                                        any |= mj[i] == 1;
+                                    }
+                                }
+                            }
+                        }
+                        if any {
+                            m[idx(x, y, z).unwrap()] = 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    m
+}
+
+#[test]
+fn propagation_inside_the_model_is_algorithm1() {
+    let cfg = tiny_config();
+    let device = Default::default();
+    let mut model: SparseOccPP<NB> = cfg.try_init(&device).unwrap();
+    // Spread the SCF predictions over all bins so that many anchors are interior.
+    let head = model.scf.as_mut().unwrap();
+    for mlp in [&mut head.planar, head.vertical.as_mut().unwrap()] {
+        let w = mlp.fc2.weight.val();
+        let dims = w.dims();
+        mlp.fc2.weight = Param::from_tensor(randn::<NB, 2>(dims, 77, &device) * 5.0);
+    }
+    let bsz = 2;
+    let batch = batch::<NB>(bsz, 3, &device);
+    let feats = features::<NB>(bsz, 30, &device);
+    let out = model.forward(&feats, &STRIDES, &batch).unwrap();
+    let scf = out.scf.as_ref().unwrap();
+    eprintln!(
+        "s_planar {:?}\ns_vertical {:?}",
+        scf.s_planar, scf.s_vertical
+    );
+    assert!(
+        scf.s_planar.iter().any(|&s| s < -1),
+        "no interior planar anchor"
+    );
+    assert!(
+        scf.s_vertical.iter().any(|&s| s < 0),
+        "no interior vertical anchor"
+    );
+    let dims = scf.dims;
+    let mut total_new = 0;
+    for b in 0..bsz as i32 {
+        let rows: Vec<usize> = (0..scf.coords.len())
+            .filter(|&i| scf.coords[i][0] == b)
+            .collect();
+        let anchors: Vec<[i32; 3]> = rows
+            .iter()
+            .map(|&i| [scf.coords[i][1], scf.coords[i][2], scf.coords[i][3]])
+            .collect();
+        let sp: Vec<i32> = rows.iter().map(|&i| scf.s_planar[i]).collect();
+        let sv: Vec<i32> = rows.iter().map(|&i| scf.s_vertical[i]).collect();
+        // occ_geometry's Algorithm 1 on this item's anchors.
+        let prop = occ_geometry::scf::propagate(&anchors, &sp, &sv, dims).unwrap();
+        total_new += prop.new_voxels.len();
+        let mut expected: Vec<[i32; 3]> = anchors.clone();
+        expected.extend(prop.new_voxels.iter().copied());
+        expected.sort_unstable();
+        let mut got: Vec<[i32; 3]> = out
+            .out
+            .coords
+            .iter()
+            .filter(|c| c[0] == b)
+            .map(|c| [c[1], c[2], c[3]])
+            .collect();
+        got.sort_unstable();
+        assert_eq!(got, expected, "item {b}");
+        // And the literal dense Algorithm 1.
+        let dense = algorithm1_dense(&anchors, &sp, &sv, dims, 4);
+        let mut dense_sites = Vec::new();
+        for (i, &m) in dense.iter().enumerate() {
+            if m == 1 {
+                let z = i % dims[2];
+                let y = (i / dims[2]) % dims[1];
+                let x = i / (dims[2] * dims[1]);
+                dense_sites.push([x as i32, y as i32, z as i32]);
+            }
+        }
+        assert_eq!(got, dense_sites, "item {b} vs dense Algorithm 1");
+    }
+    let stat = out
+        .out
+        .stats
+        .iter()
+        .find(|(n, _)| n == "propagated_new")
+        .unwrap()
+        .1;
+    assert_eq!(stat, total_new);
+    assert!(total_new > 0);
+}
+
+#[test]
+fn anchor_topk_keeps_the_best_scores_and_splits_them() {
+    let cfg = tiny_config().with_keep_ratios(vec![0.5, 0.3, 0.25]);
+    let (_, out) = run::<NB>(&cfg, 2, 4);
+    let levels = &out.anchor_levels;
+    let mut n_item = 16usize;
+    for (r, lvl) in levels.iter().enumerate() {
+        let k = occ_model::anchors::keep_count(n_item, cfg.keep_ratios[r]);
+        let scores = occupancy_score(&lvl.logits);
+        for b in 0..2 {
+            let rows: Vec<usize> = (0..lvl.coords.len())
+                .filter(|&i| lvl.coords[i][0] == b)
+                .collect();
+            assert_eq!(rows.len(), n_item, "level {r} item {b} candidates");
+            let kept: Vec<usize> = lvl
+                .kept
+                .iter()
+                .copied()
+                .filter(|&i| lvl.coords[i][0] == b)
+                .collect();
+            assert_eq!(kept.len(), k, "level {r} item {b} kept");
+            // Every kept score >= every dropped score.
+            let min_kept = kept
+                .iter()
+                .map(|&i| scores[i])
+                .fold(f32::INFINITY, f32::min);
+            let max_dropped = rows
+                .iter()
+                .filter(|i| !kept.contains(i))
+                .map(|&i| scores[i])
+                .fold(f32::NEG_INFINITY, f32::max);
+            assert!(
+                min_kept >= max_dropped,
+                "level {r}: {min_kept} < {max_dropped}"
+            );
+        }
+        // Candidates of the next level are exactly the children of the kept voxels.
+        if r + 1 < levels.len() {
+            let mut children: Vec<[i32; 4]> = lvl
+                .kept
+                .iter()
+                .flat_map(|&i| {
+                    let c = lvl.coords[i];
+                    (0..8).map(move |j| {
+                        [
+                            c[0],
+                            2 * c[1] + (j >> 2),
+                            2 * c[2] + ((j >> 1) & 1),
+                            2 * c[3] + (j & 1),
+                        ]
+                    })
+                })
+                .collect();
+            children.sort_unstable();
+            let mut next = levels[r + 1].coords.clone();
+            next.sort_unstable();
+            assert_eq!(children, next);
+        }
+        n_item = 8 * k;
+    }
+    // The anchors are the kept level-2 voxels.
+    let l2 = &levels[2];
+    let mut kept: Vec<[i32; 4]> = l2.kept.iter().map(|&i| l2.coords[i]).collect();
+    kept.sort_unstable();
+    let mut anchors = out.scf.as_ref().unwrap().coords.clone();
+    anchors.sort_unstable();
+    assert_eq!(kept, anchors);
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let cfg = tiny_config();
+    let device = Default::default();
+    let model: SparseOccPP<NB> = cfg.init(&device);
+    let batch = batch::<NB>(1, 5, &device);
+    let feats = features::<NB>(1, 50, &device);
+    assert!(model.forward(&feats[..1], &STRIDES[..1], &batch).is_err());
+    let wrong = vec![feats[0].clone(), feats[0].clone().narrow(1, 0, 4)];
+    assert!(model.forward(&wrong, &STRIDES, &batch).is_err());
+    let mut b2 = batch.clone();
+    b2.grid.dims = [16, 16, 8];
+    assert!(model.forward(&feats, &STRIDES, &b2).is_err());
+    let bad = tiny_config().with_dca_heads(3);
+    assert!(bad.validate().is_err());
+    let mut odd = tiny_config();
+    odd.full_dims = [30, 32, 8];
+    assert!(odd.validate().is_err());
+    let bad: SparseOccPP<NB> = odd.init(&device);
+    assert!(bad.forward(&feats, &STRIDES, &batch).is_err());
+}
