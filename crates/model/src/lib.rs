@@ -6,12 +6,33 @@
 //! Shared vocabulary: [`batch::Batch`] (images, cameras, targets) goes in, [`output::ModelOutput`]
 //! (sparse voxel logits, losses, per-stage statistics) comes out.
 
+pub mod anchors;
+pub mod backbone;
 pub mod batch;
+pub mod dca;
+pub mod dense_baseline;
 pub mod error;
+pub mod fpn;
+pub mod hungarian;
+pub mod loss;
+pub mod lss;
+pub mod mask_head;
 pub mod network;
+pub mod occnet;
 pub mod output;
+pub mod profile;
+pub mod propagation;
+pub mod propagator;
+pub mod pyramid;
+pub mod sample;
+pub mod scf_head;
+pub mod sparseocc;
+pub mod sparseocc_pp;
+pub mod unet;
+pub mod weights;
 
 pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
 pub use network::OccNetwork;
+pub use occnet::{ModelKind, OccNet, OccNetConfig};
 pub use output::ModelOutput;

@@ -1,0 +1,304 @@
+//! The whole network: image encoder (ResNet + FPN, [`crate::fpn`]) in front of one of the three
+//! occupancy models — SparseOcc++ (paper Sec. 4), SparseOcc (paper Sec. 3) or the dense baseline (the
+//! paper's "all modules disabled" row) — with their training losses. This is what training, inference
+//! and the benchmark run, through the [`OccNetwork`] interface.
+//!
+//! The configuration is plain serde (the `[model]` section of a TOML config): the shared sizes
+//! (`num_classes`, `full_dims`) are given once and copied into the sub-configurations, whose own
+//! fields all have the paper's defaults.
+
+use crate::batch::Batch;
+use crate::dense_baseline::{DenseBaseline, DenseBaselineConfig};
+use crate::error::ModelError;
+use crate::fpn::{ImageEncoder, ImageEncoderConfig};
+use crate::loss::sparseocc_class_weights;
+use crate::network::OccNetwork;
+use crate::output::ModelOutput;
+use crate::sparseocc::{SparseOcc, SparseOccConfig};
+use crate::sparseocc_pp::{SparseOccPP, SparseOccPPConfig};
+use burn::prelude::*;
+use occ_sparse::SparseConvBackend;
+use serde::{Deserialize, Serialize};
+
+/// Which occupancy model sits behind the image encoder.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ModelKind {
+    /// SparseOcc++ (paper Sec. 4).
+    #[serde(rename = "sparseocc++")]
+    SparseOccPP,
+    /// SparseOcc (paper Sec. 3).
+    #[serde(rename = "sparseocc")]
+    SparseOcc,
+    /// LSS + dense 3D conv encoder + linear head.
+    #[serde(rename = "dense")]
+    Dense,
+}
+
+impl ModelKind {
+    /// Parses `sparseocc++`, `sparseocc` or `dense`.
+    pub fn parse(s: &str) -> Result<Self, ModelError> {
+        match s {
+            "sparseocc++" | "sparseocc_pp" | "pp" => Ok(Self::SparseOccPP),
+            "sparseocc" | "so" => Ok(Self::SparseOcc),
+            "dense" => Ok(Self::Dense),
+            _ => Err(ModelError::Config(format!(
+                "unknown model '{s}' (sparseocc++, sparseocc or dense)"
+            ))),
+        }
+    }
+
+    /// The name used in configs, logs and benchmark tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::SparseOccPP => "sparseocc++",
+            Self::SparseOcc => "sparseocc",
+            Self::Dense => "dense",
+        }
+    }
+}
+
+/// Configuration of [`OccNet`] (the `[model]` section of a config file).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OccNetConfig {
+    /// Which model.
+    pub kind: ModelKind,
+    /// Classes including empty (class 0): 20 for SemanticKITTI.
+    pub num_classes: usize,
+    /// Full-resolution label grid `[X, Y, Z]` (256x256x32 for SemanticKITTI).
+    pub full_dims: [usize; 3],
+    /// Backbone and FPN.
+    pub encoder: ImageEncoderConfig,
+    /// For SparseOcc and the dense baseline, which encoder output level feeds the LSS (index into
+    /// the encoder's `out_indices`; the official stride is 16, i.e. level 2 of `[0, 1, 2, 3]`).
+    /// SparseOcc++ uses every level.
+    #[serde(default = "default_lss_level")]
+    pub lss_level: usize,
+    /// Per-class loss weights (`num_classes` values). Default: SparseOcc's `(1/ln f)/(1/ln f_0)` for
+    /// the 20 SemanticKITTI classes, uniform otherwise.
+    #[serde(default)]
+    pub class_weights: Option<Vec<f64>>,
+    /// SparseOcc++ settings (`num_classes`, `feat_channels`, `full_dims`, `num_feature_levels` are
+    /// overwritten from the fields above).
+    #[serde(default)]
+    pub sparseocc_pp: Option<SparseOccPPConfig>,
+    /// SparseOcc settings (shared sizes overwritten likewise).
+    #[serde(default)]
+    pub sparseocc: Option<SparseOccConfig>,
+    /// Dense-baseline settings (shared sizes overwritten likewise).
+    #[serde(default)]
+    pub dense: Option<DenseBaselineConfig>,
+}
+
+fn default_lss_level() -> usize {
+    2
+}
+
+impl OccNetConfig {
+    /// The per-class loss weights.
+    pub fn class_weights(&self) -> Result<Vec<f64>, ModelError> {
+        let w = match &self.class_weights {
+            Some(w) => w.clone(),
+            None if self.num_classes == 20 => sparseocc_class_weights().to_vec(),
+            None => vec![1.0; self.num_classes],
+        };
+        if w.len() != self.num_classes || w.iter().any(|v| !v.is_finite() || *v < 0.0) {
+            return Err(ModelError::Config(format!(
+                "class_weights: need {} finite non-negative values, got {w:?}",
+                self.num_classes
+            )));
+        }
+        Ok(w)
+    }
+
+    fn feat_channels(&self) -> usize {
+        self.encoder.fpn.out_channels
+    }
+
+    /// The SparseOcc++ configuration with the shared sizes filled in.
+    pub fn pp_config(&self) -> SparseOccPPConfig {
+        let mut c = self.sparseocc_pp.clone().unwrap_or_else(|| {
+            SparseOccPPConfig::new(self.num_classes, 128, self.feat_channels(), self.full_dims)
+        });
+        c.num_classes = self.num_classes;
+        c.feat_channels = self.feat_channels();
+        c.full_dims = self.full_dims;
+        c.num_feature_levels = self.encoder.resnet.out_indices.len();
+        c
+    }
+
+    /// The SparseOcc configuration with the shared sizes filled in.
+    pub fn so_config(&self) -> SparseOccConfig {
+        let mut c = self.sparseocc.clone().unwrap_or_else(|| {
+            SparseOccConfig::new(self.num_classes, self.feat_channels(), self.full_dims)
+        });
+        c.num_classes = self.num_classes;
+        c.feat_channels = self.feat_channels();
+        c.full_dims = self.full_dims;
+        c
+    }
+
+    /// The dense-baseline configuration with the shared sizes filled in.
+    pub fn dense_config(&self) -> DenseBaselineConfig {
+        let mut c = self.dense.clone().unwrap_or_else(|| {
+            DenseBaselineConfig::new(self.num_classes, self.feat_channels(), self.full_dims)
+        });
+        c.num_classes = self.num_classes;
+        c.feat_channels = self.feat_channels();
+        c.full_dims = self.full_dims;
+        c
+    }
+
+    /// The same configuration for another model kind (the benchmark runs all three).
+    pub fn with_kind(&self, kind: ModelKind) -> Self {
+        Self {
+            kind,
+            ..self.clone()
+        }
+    }
+
+    /// Checks sizes and switches without building anything.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if self.num_classes < 2 || self.full_dims.iter().any(|&d| d == 0 || d % 8 != 0) {
+            return Err(ModelError::Config(format!(
+                "model: num_classes {} (need >= 2), full_dims {:?} (each a positive multiple of 8)",
+                self.num_classes, self.full_dims
+            )));
+        }
+        self.encoder.resnet.validate()?;
+        self.class_weights()?;
+        if self.kind != ModelKind::SparseOccPP
+            && self.lss_level >= self.encoder.resnet.out_indices.len()
+        {
+            return Err(ModelError::Config(format!(
+                "model: lss_level {} but the encoder has {} output levels",
+                self.lss_level,
+                self.encoder.resnet.out_indices.len()
+            )));
+        }
+        match self.kind {
+            ModelKind::SparseOccPP => self.pp_config().validate(),
+            _ => Ok(()),
+        }
+    }
+
+    /// Builds the network.
+    pub fn init<B: SparseConvBackend>(&self, device: &B::Device) -> Result<OccNet<B>, ModelError> {
+        self.validate()?;
+        let encoder = self.encoder.init(device)?;
+        let (mut pp, mut so, mut dense) = (None, None, None);
+        match self.kind {
+            ModelKind::SparseOccPP => pp = Some(self.pp_config().try_init(device)?),
+            ModelKind::SparseOcc => so = Some(self.so_config().init(device)?),
+            ModelKind::Dense => dense = Some(self.dense_config().init(device)?),
+        }
+        Ok(OccNet {
+            encoder,
+            pp,
+            so,
+            dense,
+            kind: self.kind.name().to_string(),
+            class_weights: self.class_weights()?,
+            pp_config: self.pp_config(),
+            lss_level: self.lss_level,
+            num_classes: self.num_classes,
+        })
+    }
+}
+
+/// Image encoder + occupancy model. Exactly one of `pp`, `so`, `dense` is present; checkpoint keys
+/// are `encoder.backbone.*`, `encoder.neck.*` and `pp.*` / `so.*` / `dense.*`.
+#[derive(Module, Debug)]
+pub struct OccNet<B: Backend> {
+    /// ResNet + FPN.
+    pub encoder: ImageEncoder<B>,
+    /// SparseOcc++.
+    pub pp: Option<SparseOccPP<B>>,
+    /// SparseOcc.
+    pub so: Option<SparseOcc<B>>,
+    /// Dense baseline.
+    pub dense: Option<DenseBaseline<B>>,
+    kind: String,
+    class_weights: Vec<f64>,
+    pp_config: SparseOccPPConfig,
+    lss_level: usize,
+    num_classes: usize,
+}
+
+impl<B: SparseConvBackend> OccNet<B> {
+    /// `sparseocc++`, `sparseocc` or `dense`.
+    pub fn kind_name(&self) -> &str {
+        &self.kind
+    }
+
+    /// Runs encoder and model; with targets in the batch, also the loss terms.
+    ///
+    /// # Shapes
+    /// - `batch.images`: `[B, V, 3, H, W]` → `ModelOutput::logits` `[N, num_classes]` on `N` sites of
+    ///   `out_dims` (1/2 resolution, `upsample = 2` with the default settings)
+    pub fn forward(&self, batch: &Batch<B>) -> Result<ModelOutput<B>, ModelError> {
+        let [b, v, c, h, w] = batch.images.dims();
+        if c != 3 || h == 0 || w == 0 {
+            return Err(ModelError::Input(format!(
+                "images are {:?}, expected [B, V, 3, H, W]",
+                batch.images.dims()
+            )));
+        }
+        let images = batch.images.clone().reshape([b * v, c, h, w]);
+        crate::profile::start();
+        let feats = self.encoder.forward(images);
+        if let Some(f) = feats.last() {
+            crate::profile::mark("encoder", f);
+        }
+        let strides = self.encoder.strides();
+        let with_loss = batch.target.is_some();
+        let cw = &self.class_weights;
+        let mut out = if let Some(pp) = &self.pp {
+            let o = pp.forward(&feats, &strides, batch)?;
+            let losses = if with_loss {
+                o.losses(batch, &self.pp_config, cw)?
+            } else {
+                Vec::new()
+            };
+            ModelOutput { losses, ..o.out }
+        } else {
+            let lvl = self.lss_level.min(feats.len().saturating_sub(1));
+            let f = feats.into_iter().nth(lvl).ok_or_else(|| {
+                ModelError::Config("the image encoder returned no feature level".into())
+            })?;
+            let stride = strides[lvl];
+            if let Some(so) = &self.so {
+                let o = so.forward(f, stride, batch)?;
+                let losses = if with_loss {
+                    o.losses(batch, cw)?
+                } else {
+                    Vec::new()
+                };
+                ModelOutput { losses, ..o.out }
+            } else if let Some(dense) = &self.dense {
+                let o = dense.forward(f, stride, batch)?;
+                let losses = if with_loss {
+                    o.losses(batch, cw)?
+                } else {
+                    Vec::new()
+                };
+                ModelOutput { losses, ..o.out }
+            } else {
+                return Err(ModelError::Config("OccNet holds no model".into()));
+            }
+        };
+        out.stats
+            .insert(0, ("image_pixels".to_string(), b * v * h * w));
+        Ok(out)
+    }
+}
+
+impl<B: SparseConvBackend> OccNetwork<B> for OccNet<B> {
+    fn forward_batch(&self, batch: &Batch<B>) -> Result<ModelOutput<B>, ModelError> {
+        self.forward(batch)
+    }
+
+    fn num_classes(&self) -> usize {
+        self.num_classes
+    }
+}

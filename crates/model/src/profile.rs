@@ -1,0 +1,56 @@
+//! Opt-in per-stage timing of a forward pass (for `sparseocc bench`).
+//!
+//! When enabled on the current thread, [`mark`] waits for a tensor of the stage just finished
+//! (reading back one scalar, so on a GPU every queued kernel before it has run) and records the
+//! wall time since the previous mark. Disabled (the default), it costs nothing and does not
+//! synchronise.
+
+use burn::prelude::*;
+use std::cell::RefCell;
+use std::time::Instant;
+
+thread_local! {
+    static PROFILE: RefCell<Option<(Instant, Vec<(String, f64)>)>> = const { RefCell::new(None) };
+}
+
+/// Turns stage timing on (clearing earlier records) or off for this thread.
+pub fn enable(on: bool) {
+    PROFILE.with(|p| *p.borrow_mut() = on.then(|| (Instant::now(), Vec::new())));
+}
+
+/// Restarts the clock (call at the start of a forward pass).
+pub fn start() {
+    PROFILE.with(|p| {
+        if let Some((t, _)) = p.borrow_mut().as_mut() {
+            *t = Instant::now();
+        }
+    });
+}
+
+/// Ends stage `name`: synchronises on `done` and records the milliseconds since the last mark.
+pub fn mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
+    let on = PROFILE.with(|p| p.borrow().is_some());
+    if !on {
+        return;
+    }
+    if done.shape().num_elements() > 0 {
+        let s: f32 = done.clone().sum().into_scalar().elem();
+        std::hint::black_box(s);
+    }
+    PROFILE.with(|p| {
+        if let Some((t, v)) = p.borrow_mut().as_mut() {
+            v.push((name.to_string(), t.elapsed().as_secs_f64() * 1e3));
+            *t = Instant::now();
+        }
+    });
+}
+
+/// The recorded `(stage, ms)` pairs since [`enable`], cleared.
+pub fn take() -> Vec<(String, f64)> {
+    PROFILE.with(|p| {
+        p.borrow_mut()
+            .as_mut()
+            .map(|(_, v)| std::mem::take(v))
+            .unwrap_or_default()
+    })
+}
