@@ -4,10 +4,13 @@
 //! batches ([`dataset`]), AdamW with a no-decay parameter group, warmup + cosine schedule
 //! ([`schedule`]), clipping by global norm ([`grads`]).
 
+pub mod config;
 pub mod dataset;
 pub mod error;
 pub mod grads;
+pub mod infer;
 pub mod schedule;
 pub mod trainer;
 
+pub use config::{DataConfig, RunConfig};
 pub use error::TrainError;

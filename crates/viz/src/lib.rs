@@ -20,6 +20,7 @@ mod font;
 mod overlay;
 mod palette;
 mod panels;
+pub mod plot;
 mod ply;
 mod raster;
 mod render;

@@ -1,0 +1,199 @@
+//! Run configuration files (`configs/*.toml`): `[model]` ([`OccNetConfig`]), `[train]`
+//! ([`TrainConfig`]) and `[data]` ([`DataConfig`]).
+
+use crate::trainer::TrainConfig;
+use crate::TrainError;
+use occ_data::image::ImagePipelineConfig;
+use occ_model::OccNetConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Input pipeline settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataConfig {
+    /// Network input width (SemanticKITTI: 1280).
+    pub image_width: usize,
+    /// Network input height (SemanticKITTI: 384).
+    pub image_height: usize,
+    /// Training sequences (SemanticKITTI: 00-07, 09, 10).
+    #[serde(default)]
+    pub train_sequences: Vec<String>,
+    /// Validation sequences (SemanticKITTI: 08).
+    #[serde(default)]
+    pub val_sequences: Vec<String>,
+    /// Training augmentation: resize offset range added to `image_width / W`.
+    #[serde(default = "resize_lim")]
+    pub resize_lim: (f64, f64),
+    /// Training augmentation: horizontal flip probability.
+    #[serde(default = "flip")]
+    pub flip_prob: f64,
+    /// Training augmentation: rotation range (degrees).
+    #[serde(default = "rot")]
+    pub rot_lim_deg: (f64, f64),
+}
+
+fn resize_lim() -> (f64, f64) {
+    (-0.06, 0.11)
+}
+fn flip() -> f64 {
+    0.5
+}
+fn rot() -> (f64, f64) {
+    (-5.4, 5.4)
+}
+
+impl DataConfig {
+    /// The image pipeline these settings describe.
+    pub fn pipeline(&self) -> ImagePipelineConfig {
+        ImagePipelineConfig {
+            out_width: self.image_width,
+            out_height: self.image_height,
+            resize_lim: self.resize_lim,
+            flip_prob: self.flip_prob,
+            rot_lim_deg: self.rot_lim_deg,
+        }
+    }
+}
+
+/// Merges `user` over `defaults` (tables recursively; any other value replaces).
+fn merge(defaults: &mut toml::Table, user: &toml::Table) {
+    for (k, v) in user {
+        match (defaults.get_mut(k), v) {
+            (Some(toml::Value::Table(d)), toml::Value::Table(u)) => merge(d, u),
+            _ => {
+                defaults.insert(k.clone(), v.clone());
+            }
+        }
+    }
+}
+
+fn to_table<T: Serialize>(v: &T) -> Result<toml::Table, String> {
+    toml::Table::try_from(v).map_err(|e| e.to_string())
+}
+
+/// Fills the model sub-sections of a parsed config with their defaults (see [`RunConfig::from_toml`]).
+fn fill_model_defaults(root: &mut toml::Table) -> Result<(), String> {
+    use occ_model::backbone::ResNetConfig;
+    use occ_model::dense_baseline::DenseBaselineConfig;
+    use occ_model::fpn::FpnConfig;
+    use occ_model::sparseocc::SparseOccConfig;
+    use occ_model::sparseocc_pp::SparseOccPPConfig;
+    let Some(toml::Value::Table(model)) = root.get_mut("model") else {
+        return Err("missing [model] section".into());
+    };
+    let num_classes = model
+        .get("num_classes")
+        .and_then(|v| v.as_integer())
+        .ok_or("model.num_classes is missing")? as usize;
+    let dims: Vec<usize> = model
+        .get("full_dims")
+        .and_then(|v| v.as_array())
+        .map(|a| {
+            a.iter()
+                .filter_map(|x| x.as_integer())
+                .map(|x| x as usize)
+                .collect()
+        })
+        .unwrap_or_default();
+    let full_dims: [usize; 3] = dims
+        .try_into()
+        .map_err(|_| "model.full_dims must be three integers".to_string())?;
+    let mut encoder = toml::Table::new();
+    encoder.insert(
+        "resnet".into(),
+        toml::Value::Table(to_table(&ResNetConfig::new())?),
+    );
+    encoder.insert(
+        "fpn".into(),
+        toml::Value::Table(to_table(&FpnConfig::new())?),
+    );
+    if let Some(toml::Value::Table(u)) = model.get("encoder") {
+        merge(&mut encoder, u);
+    }
+    let feat = encoder
+        .get("fpn")
+        .and_then(|f| f.get("out_channels"))
+        .and_then(|v| v.as_integer())
+        .unwrap_or(256) as usize;
+    model.insert("encoder".into(), toml::Value::Table(encoder));
+    let sections = [
+        (
+            "sparseocc_pp",
+            to_table(&SparseOccPPConfig::new(num_classes, 128, feat, full_dims))?,
+        ),
+        (
+            "sparseocc",
+            to_table(&SparseOccConfig::new(num_classes, feat, full_dims))?,
+        ),
+        (
+            "dense",
+            to_table(&DenseBaselineConfig::new(num_classes, feat, full_dims))?,
+        ),
+    ];
+    for (name, mut defaults) in sections {
+        if let Some(toml::Value::Table(u)) = model.get(name) {
+            merge(&mut defaults, u);
+            model.insert(name.into(), toml::Value::Table(defaults));
+        }
+    }
+    Ok(())
+}
+
+/// A whole run configuration.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// The network.
+    pub model: OccNetConfig,
+    /// Optimisation.
+    pub train: TrainConfig,
+    /// Inputs.
+    pub data: DataConfig,
+}
+
+impl RunConfig {
+    /// Parses TOML text; `origin` names the source in errors.
+    ///
+    /// The model sub-sections (`[model.encoder.resnet]`, `[model.encoder.fpn]`,
+    /// `[model.sparseocc_pp]`, `[model.sparseocc]`, `[model.dense]`) need only the fields that differ
+    /// from the paper defaults: they are merged over the defaults, and the shared sizes
+    /// (`num_classes`, `full_dims`, feature channels) come from `[model]`.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, TrainError> {
+        let err = |e: String| TrainError::Config(format!("{origin}: {e}"));
+        let mut value: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        fill_model_defaults(&mut value).map_err(err)?;
+        let cfg: RunConfig = toml::Value::Table(value)
+            .try_into()
+            .map_err(|e: toml::de::Error| err(e.to_string()))?;
+        cfg.validate()
+            .map_err(|e| TrainError::Config(format!("{origin}: {e}")))?;
+        Ok(cfg)
+    }
+
+    /// Reads and validates a config file.
+    pub fn load(path: &Path) -> Result<Self, TrainError> {
+        let text = std::fs::read_to_string(path).map_err(|source| TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// The config as TOML (saved into every run folder, read back by `infer`).
+    pub fn to_toml(&self) -> Result<String, TrainError> {
+        toml::to_string_pretty(self).map_err(|e| TrainError::Config(e.to_string()))
+    }
+
+    /// Checks sizes (model, and the image size against the encoder strides).
+    pub fn validate(&self) -> Result<(), String> {
+        self.model.validate().map_err(|e| e.to_string())?;
+        if self.data.image_width < 32 || self.data.image_height < 32 {
+            return Err(format!(
+                "data: image {}x{} is too small (at least 32x32)",
+                self.data.image_width, self.data.image_height
+            ));
+        }
+        Ok(())
+    }
+}
