@@ -1,11 +1,13 @@
 //! `sparseocc demo`: the whole pipeline on built-in synthetic data.
 //!
-//! Today it runs: synthetic dataset generation (train + held-out val sequence, SemanticKITTI layout,
-//! `kitti-small` grid) → the per-voxel prior baseline (most frequent training label of each voxel) →
-//! predictions in the submission layout → official SemanticKITTI scoring → renders → `summary.json`.
-//! The learned models (SparseOcc++, SparseOcc, dense) plug in at the prediction step once integrated;
-//! until then the demo says so in its output and summary.
+//! Synthetic dataset (train + held-out val sequence, SemanticKITTI layout, `kitti-small` grid) →
+//! SparseOcc++ trained with `configs/synthetic_tiny.toml` (built into the binary; `--config` to use
+//! another, `--model` to train SparseOcc or the dense baseline instead) → predictions on the held-out
+//! sequence in the submission layout → official SemanticKITTI scoring → renders → `summary.json`.
+//! The per-voxel prior (most frequent training label of each voxel) is scored beside it as the
+//! baseline a learned model must beat.
 
+use crate::cmd_train::run_with;
 use crate::cmd_viz::render_panels;
 use crate::labels_io::read_label_grid;
 use crate::progress;
@@ -13,14 +15,19 @@ use anyhow::{Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
 use occ_data::synthetic::{self, Preset, SynthConfig};
-use occ_eval::{format_table, score_semantic_kitti_folder, FolderOptions};
-use std::path::PathBuf;
+use occ_eval::{score_semantic_kitti_folder, EvalReport, FolderOptions};
+use occ_model::ModelKind;
+use occ_train::RunConfig;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+/// The demo's built-in configuration (`configs/synthetic_tiny.toml`).
+pub const SYNTHETIC_TINY: &str = include_str!("../../../configs/synthetic_tiny.toml");
 
 /// Arguments of `sparseocc demo`.
 #[derive(clap::Args, Debug)]
 pub struct DemoArgs {
-    /// Output folder (data/, predictions/, renders/, summary.json).
+    /// Output folder (data/, run/, predictions/, prior_predictions/, renders/, summary.json).
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
     /// Training sequence and frame count.
@@ -29,37 +36,32 @@ pub struct DemoArgs {
     /// Held-out validation sequence and frame count.
     #[arg(long, default_value = "08:6")]
     pub val: String,
-    /// Random seed.
+    /// Random seed (data and training).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Run configuration (default: the built-in configs/synthetic_tiny.toml).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Train this model instead: sparseocc++, sparseocc or dense.
+    #[arg(long)]
+    pub model: Option<String>,
+    /// Override the number of training steps.
+    #[arg(long)]
+    pub steps: Option<usize>,
 }
 
-pub fn run(args: &DemoArgs) -> Result<()> {
-    let t0 = Instant::now();
-    let data = args.out.join("data");
-    let pred_root = args.out.join("predictions");
-    let train = synthetic::parse_sequences(&args.train)?;
-    let val = synthetic::parse_sequences(&args.val)?;
-    let mut seqs = train.clone();
-    seqs.extend(val.iter().cloned());
-    eprintln!("[1/4] generating synthetic scenes into {}", data.display());
-    let cfg = SynthConfig::new(Preset::KittiSmall, args.seed, seqs);
-    let pb = progress::bar(1, "synth");
-    let summary = synthetic::generate(&data, &cfg, &mut progress::callback(&pb))?;
-    pb.finish_and_clear();
-    let grid = Preset::KittiSmall.grid();
-    let n = grid.num_voxels();
-    let paths = KittiPaths::new(&data);
+/// Fits the per-voxel prior on the training sequences and writes its predictions for `val`.
+fn prior_baseline(
+    data: &Path,
+    train: &[(String, usize)],
+    val: &[(String, usize)],
+    pred_root: &Path,
+    n: usize,
+) -> Result<EvalReport> {
+    let paths = KittiPaths::new(data);
     let map = LearningMap::semantic_kitti();
-
-    eprintln!(
-        "[2/4] fitting the per-voxel prior on {} training frames",
-        train.iter().map(|s| s.1).sum::<usize>()
-    );
-    eprintln!("      (learned models are not integrated into the demo yet: this is the baseline they must beat)");
-    let t_fit = Instant::now();
     let mut counts = vec![0u32; n * 20];
-    for (seq, _) in &train {
+    for (seq, _) in train {
         for frame in sk::list_stems(&data.join("sequences").join(seq).join("voxels"), "label")? {
             let labels = map.remap(&sk::read_label_raw(&paths.voxels(seq, &frame, "label"), n)?);
             for (i, &c) in labels.iter().enumerate() {
@@ -81,13 +83,9 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             best as u8
         })
         .collect();
-    let train_seconds = t_fit.elapsed().as_secs_f64();
-
-    eprintln!("[3/4] writing predictions and scoring the held-out sequence");
-    let pred_paths = KittiPaths::new(&pred_root);
+    let pred_paths = KittiPaths::new(pred_root);
     let raw = map.inverse_remap(&prior);
-    let mut first = None;
-    for (seq, _) in &val {
+    for (seq, _) in val {
         for frame in sk::list_stems(&data.join("sequences").join(seq).join("voxels"), "label")? {
             let p = pred_paths.prediction(seq, &frame);
             if let Some(dir) = p.parent() {
@@ -95,36 +93,98 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                     .with_context(|| format!("creating {}", dir.display()))?;
             }
             sk::write_label_raw(&p, &raw)?;
-            first.get_or_insert((seq.clone(), frame.clone(), p));
+        }
+    }
+    let names: Vec<String> = val.iter().map(|s| s.0.clone()).collect();
+    Ok(score_semantic_kitti_folder(
+        data,
+        pred_root,
+        &FolderOptions {
+            sequences: Some(&names),
+            ..Default::default()
+        },
+    )?)
+}
+
+pub fn run(args: &DemoArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let data = args.out.join("data");
+    let train = synthetic::parse_sequences(&args.train)?;
+    let val = synthetic::parse_sequences(&args.val)?;
+    let mut cfg = match &args.config {
+        Some(p) => RunConfig::load(p)?,
+        None => RunConfig::from_toml(SYNTHETIC_TINY, "built-in configs/synthetic_tiny.toml")?,
+    };
+    if let Some(m) = &args.model {
+        cfg.model.kind = ModelKind::parse(m)?;
+    }
+    if let Some(s) = args.steps {
+        cfg.train.steps = s;
+    }
+    cfg.train.seed = args.seed;
+    cfg.data.train_sequences = train.iter().map(|s| s.0.clone()).collect();
+    cfg.data.val_sequences = val.iter().map(|s| s.0.clone()).collect();
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    let mut seqs = train.clone();
+    seqs.extend(val.iter().cloned());
+
+    eprintln!("[1/5] generating synthetic scenes into {}", data.display());
+    let synth = SynthConfig::new(Preset::KittiSmall, args.seed, seqs);
+    let pb = progress::bar(1, "synth");
+    let summary = synthetic::generate(&data, &synth, &mut progress::callback(&pb))?;
+    pb.finish_and_clear();
+    let grid = Preset::KittiSmall.grid();
+
+    eprintln!("[2/5] per-voxel prior baseline (most frequent training label of each voxel)");
+    let prior = prior_baseline(
+        &data,
+        &train,
+        &val,
+        &args.out.join("prior_predictions"),
+        grid.num_voxels(),
+    )?;
+    eprintln!(
+        "      prior on the held-out sequence: IoU {:.3}, mIoU {:.3}",
+        prior.iou, prior.miou
+    );
+
+    eprintln!(
+        "[3/5] training {} ({} steps)",
+        cfg.model.kind.name(),
+        cfg.train.steps
+    );
+    let run_dir = args.out.join("run");
+    let outcome = run_with(&cfg, &data, &run_dir, false, false)?;
+    let train_seconds = outcome.summary.train_seconds;
+
+    eprintln!("[4/5] predicting and scoring the held-out sequence");
+    let pred_root = args.out.join("predictions");
+    let (report, spf) = crate::cmd_train::validate_on(&outcome.model, &cfg, &data, &pred_root)?;
+
+    eprintln!("[5/5] rendering");
+    let paths = KittiPaths::new(&data);
+    let pred_paths = KittiPaths::new(&pred_root);
+    let mut renders = Vec::new();
+    for (seq, _) in &val {
+        let frames = sk::list_stems(&data.join("sequences").join(seq).join("voxels"), "label")?;
+        for frame in frames.iter().take(2) {
+            let gt = read_label_grid(&paths.voxels(seq, frame, "label"))?;
+            let pred = read_label_grid(&pred_paths.prediction(seq, frame))?;
+            let out = args.out.join("renders").join(format!("{seq}_{frame}.png"));
+            render_panels(
+                &gt,
+                Some(&pred),
+                Some((&paths.image_2(seq, frame), &paths.calib(seq))),
+                &out,
+                360,
+            )?;
+            eprintln!("      wrote {}", out.display());
+            renders.push(out);
         }
     }
     let val_names: Vec<String> = val.iter().map(|s| s.0.clone()).collect();
-    let report = score_semantic_kitti_folder(
-        &data,
-        &pred_root,
-        &FolderOptions {
-            sequences: Some(&val_names),
-            ..Default::default()
-        },
-    )?;
-    println!("{}", format_table(&report));
-
-    eprintln!("[4/4] rendering");
-    if let Some((seq, frame, pred_p)) = &first {
-        let gt = read_label_grid(&paths.voxels(seq, frame, "label"))?;
-        let pred = read_label_grid(pred_p)?;
-        let out = args.out.join("renders").join(format!("{seq}_{frame}.png"));
-        render_panels(
-            &gt,
-            Some(&pred),
-            Some((&paths.image_2(seq, frame), &paths.calib(seq))),
-            &out,
-            360,
-        )?;
-        eprintln!("      wrote {}", out.display());
-    }
     let summary_json = serde_json::json!({
-        "model": "per-voxel prior (most frequent training label of each voxel); learned models not yet integrated",
+        "model": cfg.model.kind.name(),
         "iou": report.iou,
         "miou": report.miou,
         "precision": report.precision,
@@ -132,11 +192,31 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         "per_class": report.per_class,
         "frames": report.frames,
         "train_seconds": train_seconds,
+        "train_steps": outcome.summary.steps,
+        "first_loss": outcome.summary.first_loss,
+        "last_loss": outcome.summary.last_loss,
+        "seconds_per_val_frame": spf,
         "val_sequences": val_names,
+        "prior": {
+            "description": "most frequent training label of each voxel",
+            "iou": prior.iou,
+            "miou": prior.miou,
+            "per_class": prior.per_class,
+        },
         "synth_frames": summary.frames,
+        "renders": renders,
+        "device": crate::backend::describe(),
         "total_seconds": t0.elapsed().as_secs_f64(),
     });
     crate::util::write_json(&args.out.join("summary.json"), &summary_json)?;
+    eprintln!(
+        "{}: IoU {:.3}, mIoU {:.3} | per-voxel prior: IoU {:.3}, mIoU {:.3}",
+        cfg.model.kind.name(),
+        report.iou,
+        report.miou,
+        prior.iou,
+        prior.miou
+    );
     eprintln!(
         "done in {:.1} s; summary in {}",
         t0.elapsed().as_secs_f64(),

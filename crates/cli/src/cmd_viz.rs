@@ -54,12 +54,26 @@ pub fn render_panels(
     out: &Path,
     height: usize,
 ) -> Result<()> {
+    render_panel_set(Some(labels), pred, image, out, height)
+}
+
+/// Like [`render_panels`], with the ground truth optional (`infer` on unlabelled frames): camera
+/// overlay of the prediction (or labels) | prediction | ground truth, whichever are given.
+pub fn render_panel_set(
+    labels: Option<&LabelGrid>,
+    pred: Option<&LabelGrid>,
+    image: Option<(&Path, &Path)>,
+    out: &Path,
+    height: usize,
+) -> Result<()> {
     let mut panels: Vec<(String, RgbImage)> = Vec::new();
+    let Some(shown) = pred.or(labels) else {
+        anyhow::bail!("{}: nothing to render", out.display());
+    };
     if let Some((img_p, calib_p)) = image {
         let img = read_png(img_p)?;
         let calib = sk::read_calib(calib_p)?;
         let view = calib.camera_view(img.width, img.height);
-        let shown = pred.unwrap_or(labels);
         let mut oo = OverlayOptions::new(shown.palette);
         oo.color_by_height = shown.occupancy_only;
         let ov = overlay_on_image(
@@ -74,7 +88,9 @@ pub fn render_panels(
     if let Some(p) = pred {
         panels.push(("prediction".into(), render(p, "prediction", height)?));
     }
-    panels.push(("labels".into(), render(labels, "ground truth", height)?));
+    if let Some(l) = labels {
+        panels.push(("labels".into(), render(l, "ground truth", height)?));
+    }
     let refs: Vec<(&str, &RgbImage)> = panels.iter().map(|(n, i)| (n.as_str(), i)).collect();
     let img = if refs.len() == 1 {
         refs[0].1.clone()

@@ -3,10 +3,15 @@
 //! Commands: `demo` (the whole pipeline on built-in synthetic data), `synth`, `prepare`, `train`,
 //! `eval`, `infer`, `bench`, `viz`. Every long command shows progress and writes a JSON summary.
 
+mod backend;
+mod cmd_bench;
+mod cmd_check;
 mod cmd_demo;
 mod cmd_eval;
+mod cmd_infer;
 mod cmd_prepare;
 mod cmd_synth;
+mod cmd_train;
 mod cmd_viz;
 mod labels_io;
 mod progress;
@@ -35,6 +40,14 @@ enum Cmd {
     Prepare(cmd_prepare::PrepareArgs),
     /// Score predictions with the official protocol (SemanticKITTI, Occ3D).
     Eval(cmd_eval::EvalArgs),
+    /// Train SparseOcc++, SparseOcc or the dense baseline from a TOML config.
+    Train(cmd_train::TrainArgs),
+    /// Predict with a trained model: dataset sequences (submission layout) or one camera image.
+    Infer(cmd_infer::InferArgs),
+    /// Latency, FPS, peak memory and active voxels of the models side by side; memory scan.
+    Bench(cmd_bench::BenchArgs),
+    /// Check this build's backend (CUDA) against the CPU reference on sparse convs and the encoder.
+    CheckBackend(cmd_check::CheckArgs),
     /// Render voxel grids (and camera overlays) to PNG, export PLY.
     Viz(cmd_viz::VizArgs),
 }
@@ -46,6 +59,10 @@ fn main() {
         Cmd::Synth(a) => cmd_synth::run(a),
         Cmd::Prepare(a) => cmd_prepare::run(a),
         Cmd::Viz(a) => cmd_viz::run(a),
+        Cmd::Train(a) => cmd_train::run(a),
+        Cmd::Infer(a) => cmd_infer::run(a),
+        Cmd::Bench(a) => cmd_bench::run(a),
+        Cmd::CheckBackend(a) => cmd_check::run(a),
         Cmd::Eval(a) => cmd_eval::run(a).map(|_| ()),
     };
     if let Err(e) = r {

@@ -1,0 +1,265 @@
+//! `sparseocc infer`: a trained model (or random weights) on a dataset's sequences, writing the
+//! SemanticKITTI submission layout, or on any single camera image with its calibration.
+//!
+//! - `--checkpoint RUN` (a training run folder, or its `checkpoint/`): config from `RUN/config.toml`.
+//! - `--config C --random-weights`: an untrained network (timing, smoke tests on real frames).
+
+use crate::backend::{self, Infer};
+use crate::cmd_viz::render_panel_set;
+use crate::labels_io::LabelGrid;
+use crate::progress;
+use anyhow::{bail, Context, Result};
+use burn::module::Module;
+use burn::record::{BinFileRecorder, FullPrecisionSettings};
+use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
+use occ_data::labels::LearningMap;
+use occ_eval::{format_table, score_semantic_kitti_folder, FolderOptions};
+use occ_geometry::VoxelGrid;
+use occ_model::OccNet;
+use occ_train::dataset::KittiDataset;
+use occ_train::infer::{load_single_image, predict_dataset, predict_sample};
+use occ_train::RunConfig;
+use occ_viz::Palette;
+use std::path::{Path, PathBuf};
+
+/// Arguments of `sparseocc infer`.
+#[derive(clap::Args, Debug)]
+pub struct InferArgs {
+    /// Training run folder (with config.toml and checkpoint/) or its checkpoint/ folder.
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Run configuration, for --random-weights.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Use an untrained network built from --config (timing and smoke tests).
+    #[arg(long)]
+    pub random_weights: bool,
+    /// Dataset root (folder with sequences/), with --sequences.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Sequences to predict (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    pub sequences: Option<Vec<String>>,
+    /// A single camera image (PNG), with --calib.
+    #[arg(long)]
+    pub image: Option<PathBuf>,
+    /// KITTI-format calibration (P2 and Tr lines) of --image.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// Output folder: sequences/XX/predictions/*.label (or NAME.label for --image), renders/, summary.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Render this many frames (camera overlay | prediction | ground truth when labelled).
+    #[arg(long, default_value_t = 2)]
+    pub render: usize,
+}
+
+/// Loads a model and its configuration from a run folder (or its checkpoint/ folder).
+pub fn load_checkpoint(path: &Path) -> Result<(RunConfig, VoxelGrid, OccNet<Infer>)> {
+    let run = if path.join("config.toml").exists() {
+        path.to_path_buf()
+    } else if path.file_name().is_some_and(|n| n == "checkpoint")
+        && path
+            .parent()
+            .is_some_and(|p| p.join("config.toml").exists())
+    {
+        path.parent().map(Path::to_path_buf).unwrap_or_default()
+    } else {
+        bail!(
+            "{}: not a training run (no config.toml in it or its parent)",
+            path.display()
+        );
+    };
+    let cfg = RunConfig::load(&run.join("config.toml"))?;
+    let grid_p = run.join("grid.json");
+    let grid: VoxelGrid = serde_json::from_slice(
+        &std::fs::read(&grid_p).with_context(|| format!("{}: cannot read", grid_p.display()))?,
+    )
+    .with_context(|| format!("{}: not a voxel grid", grid_p.display()))?;
+    let device = backend::device();
+    let model: OccNet<Infer> = cfg.model.init(&device)?;
+    let weights = run.join("checkpoint").join("model");
+    let model = model
+        .load_file(
+            weights.clone(),
+            &BinFileRecorder::<FullPrecisionSettings>::new(),
+            &device,
+        )
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "{}: does not match {} ({e})",
+                weights.display(),
+                run.join("config.toml").display()
+            )
+        })?;
+    Ok((cfg, grid, model))
+}
+
+fn grid_for(dims: [usize; 3]) -> Result<VoxelGrid> {
+    for f in [1, 2, 4] {
+        let g = VoxelGrid::semantic_kitti().downsampled(f);
+        if g.dims == dims {
+            return Ok(g);
+        }
+    }
+    let small = occ_data::synthetic::Preset::KittiSmall.grid();
+    if small.dims == dims {
+        return Ok(small);
+    }
+    bail!("model.full_dims {dims:?} is not a SemanticKITTI grid; use a trained run (it stores its grid)")
+}
+
+pub fn run(args: &InferArgs) -> Result<()> {
+    let (cfg, grid, model) = match (&args.checkpoint, &args.config, args.random_weights) {
+        (Some(ck), None, false) => load_checkpoint(ck)?,
+        (None, Some(c), true) => {
+            let cfg = RunConfig::load(c)?;
+            let grid = grid_for(cfg.model.full_dims)?;
+            let model: OccNet<Infer> = cfg.model.init(&backend::device())?;
+            (cfg, grid, model)
+        }
+        _ => bail!("give either --checkpoint RUN, or --config C --random-weights"),
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let device = backend::device();
+    let map = LearningMap::semantic_kitti();
+    let mut summary = serde_json::json!({
+        "model": cfg.model.kind.name(),
+        "device": backend::describe(),
+        "weights": if args.random_weights { "random" } else { "checkpoint" },
+    });
+    match (&args.data, &args.image) {
+        (Some(data), None) => {
+            let seqs = args
+                .sequences
+                .clone()
+                .unwrap_or_else(|| cfg.data.val_sequences.clone());
+            if seqs.is_empty() {
+                bail!("--sequences is required (the config has no val_sequences)");
+            }
+            let ds = KittiDataset::open(data, &seqs, cfg.data.pipeline())?;
+            if ds.grid().dims != grid.dims {
+                bail!(
+                    "{}: dataset grid {:?} but the model predicts {:?}",
+                    data.display(),
+                    ds.grid().dims,
+                    grid.dims
+                );
+            }
+            let pb = progress::bar(ds.len() as u64, "infer");
+            let mut times = Vec::new();
+            let written = predict_dataset(&model, &ds, &args.out, &device, &mut |d, t, f, p| {
+                pb.set_length(t as u64);
+                pb.set_position(d as u64);
+                times.push(p.seconds);
+                if std::env::var_os("CI").is_some() || !console_is_tty() {
+                    eprintln!(
+                        "  {}/{}: {:.3} s, voxels {:?}",
+                        f.sequence, f.frame, p.seconds, p.stats
+                    );
+                }
+            })?;
+            pb.finish_and_clear();
+            let paths = KittiPaths::new(data);
+            for (path, _) in written.iter().take(args.render) {
+                let stem = path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                let seq = path
+                    .parent()
+                    .and_then(Path::parent)
+                    .and_then(Path::file_name)
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                let pred = read_pred(path, grid)?;
+                let gt_p = paths.voxels(&seq, &stem, "label");
+                let gt = gt_p.exists().then(|| read_pred(&gt_p, grid)).transpose()?;
+                let out = args.out.join("renders").join(format!("{seq}_{stem}.png"));
+                render_panel_set(
+                    gt.as_ref(),
+                    Some(&pred),
+                    Some((&paths.image_2(&seq, &stem), &paths.calib(&seq))),
+                    &out,
+                    360,
+                )?;
+                eprintln!("wrote {}", out.display());
+            }
+            let labelled = seqs.iter().all(|s| {
+                let d = data.join("sequences").join(s).join("voxels");
+                sk::list_stems(&d, "label").is_ok_and(|v| !v.is_empty())
+            });
+            if labelled {
+                let r = score_semantic_kitti_folder(
+                    data,
+                    &args.out,
+                    &FolderOptions {
+                        sequences: Some(&seqs),
+                        ..Default::default()
+                    },
+                )?;
+                println!("{}", format_table(&r));
+                summary["iou"] = serde_json::json!(r.iou);
+                summary["miou"] = serde_json::json!(r.miou);
+                summary["per_class"] = serde_json::json!(r.per_class);
+            }
+            let mean = times.iter().sum::<f64>() / times.len().max(1) as f64;
+            eprintln!(
+                "{} frames, {:.3} s per frame (forward pass, image decoding excluded), {}",
+                times.len(),
+                mean,
+                backend::describe()
+            );
+            summary["frames"] = serde_json::json!(times.len());
+            summary["seconds_per_frame"] = serde_json::json!(mean);
+            summary["seconds"] = serde_json::json!(times);
+        }
+        (None, Some(image)) => {
+            let Some(calib) = &args.calib else {
+                bail!("--image needs --calib (KITTI calib.txt with P2 and Tr)");
+            };
+            let sample = load_single_image(image, calib, &cfg.data.pipeline())?;
+            let pred = predict_sample(&model, &sample, grid, &device)?;
+            let name = sample.frame.frame.clone();
+            let label_p = args.out.join(format!("{name}.label"));
+            sk::write_label_raw(&label_p, &map.inverse_remap(&pred.classes))?;
+            let pred_grid = LabelGrid {
+                classes: pred.classes.clone(),
+                grid,
+                palette: Palette::SemanticKitti,
+                occupancy_only: false,
+            };
+            let out = args.out.join(format!("{name}.png"));
+            render_panel_set(None, Some(&pred_grid), Some((image, calib)), &out, 360)?;
+            eprintln!(
+                "wrote {} and {} ({:.3} s forward, {})",
+                label_p.display(),
+                out.display(),
+                pred.seconds,
+                backend::describe()
+            );
+            summary["frames"] = serde_json::json!(1);
+            summary["seconds_per_frame"] = serde_json::json!(pred.seconds);
+            summary["stats"] = serde_json::json!(pred.stats);
+        }
+        _ => bail!("give either --data DIR --sequences S, or --image IMG --calib CALIB"),
+    }
+    crate::util::write_json(&args.out.join("summary.json"), &summary)?;
+    Ok(())
+}
+
+fn console_is_tty() -> bool {
+    use std::io::IsTerminal;
+    std::io::stderr().is_terminal()
+}
+
+fn read_pred(path: &Path, grid: VoxelGrid) -> Result<LabelGrid> {
+    let raw = sk::read_label_raw(path, grid.num_voxels())?;
+    Ok(LabelGrid {
+        classes: LearningMap::semantic_kitti().remap(&raw),
+        grid,
+        palette: Palette::SemanticKitti,
+        occupancy_only: false,
+    })
+}
