@@ -9,8 +9,6 @@ use crate::cmd_viz::render_panel_set;
 use crate::labels_io::LabelGrid;
 use crate::progress;
 use anyhow::{bail, Context, Result};
-use burn::module::Module;
-use burn::record::{BinFileRecorder, FullPrecisionSettings};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
 use occ_eval::{format_table, score_semantic_kitti_folder, FolderOptions};
@@ -78,20 +76,13 @@ pub fn load_checkpoint(path: &Path) -> Result<(RunConfig, VoxelGrid, OccNet<Infe
     .with_context(|| format!("{}: not a voxel grid", grid_p.display()))?;
     let device = backend::device();
     let model: OccNet<Infer> = cfg.model.init(&device)?;
-    let weights = run.join("checkpoint").join("model");
-    let model = model
-        .load_file(
-            weights.clone(),
-            &BinFileRecorder::<FullPrecisionSettings>::new(),
-            &device,
+    let weights = run.join("checkpoint").join("model.bin");
+    let model = occ_model::load_checked(model, &weights, &device).map_err(|e| {
+        anyhow::anyhow!(
+            "{e} (config {}; the checkpoint does not match it)",
+            run.join("config.toml").display()
         )
-        .map_err(|e| {
-            anyhow::anyhow!(
-                "{}: does not match {} ({e})",
-                weights.display(),
-                run.join("config.toml").display()
-            )
-        })?;
+    })?;
     Ok((cfg, grid, model))
 }
 

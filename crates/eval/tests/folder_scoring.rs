@@ -20,7 +20,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 fn realdata_dir() -> PathBuf {
     let dir = match std::env::var_os("SPARSEOCC_REALDATA") {
         Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata"),
+        None => PathBuf::from(
+            std::env::var_os("CARGO_MANIFEST_DIR")
+                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
+        )
+        .join("../../../shared/realdata"),
     };
     assert!(
         dir.is_dir(),

@@ -10,7 +10,11 @@ use std::path::PathBuf;
 fn fixtures_dir() -> PathBuf {
     let dir = match std::env::var_os("SPARSEOCC_FIXTURES") {
         Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures"),
+        None => PathBuf::from(
+            std::env::var_os("CARGO_MANIFEST_DIR")
+                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
+        )
+        .join("../../../shared/fixtures"),
     };
     assert!(
         dir.join("reference/manifest.json").is_file(),

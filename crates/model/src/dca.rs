@@ -74,7 +74,10 @@ pub struct DcaConfig {
 impl DcaConfig {
     /// Checks the sizes.
     pub fn validate(&self) -> Result<(), ModelError> {
-        if self.embed_dim == 0 || self.num_heads == 0 || self.embed_dim % self.num_heads != 0 {
+        if self.embed_dim == 0
+            || self.num_heads == 0
+            || !self.embed_dim.is_multiple_of(self.num_heads)
+        {
             return Err(ModelError::Config(format!(
                 "DCA: embed_dim {} must be a positive multiple of num_heads {}",
                 self.embed_dim, self.num_heads

@@ -34,5 +34,5 @@ pub mod weights;
 pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
 pub use network::OccNetwork;
-pub use occnet::{ModelKind, OccNet, OccNetConfig};
+pub use occnet::{load_checked, ModelKind, OccNet, OccNetConfig};
 pub use output::ModelOutput;

@@ -99,13 +99,16 @@ impl MaskHeadConfig {
                 self.num_classes, self.num_queries, self.num_heads, self.ffn_channels, self.num_memory_levels
             )));
         }
-        if c % self.num_heads != 0 {
+        if !c.is_multiple_of(self.num_heads) {
             return Err(ModelError::Config(format!(
                 "mask_head.rs: {} heads do not divide {c} channels",
                 self.num_heads
             )));
         }
-        if !(0.0..=1.0).contains(&self.coarse_threshold) || !(self.coarse_max_ratio > 0.0) {
+        if !(0.0..=1.0).contains(&self.coarse_threshold)
+            || self.coarse_max_ratio.is_nan()
+            || self.coarse_max_ratio <= 0.0
+        {
             return Err(ModelError::Config(format!(
                 "mask_head.rs: coarse_threshold {} must be in [0, 1], coarse_max_ratio {} > 0",
                 self.coarse_threshold, self.coarse_max_ratio

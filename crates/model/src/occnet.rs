@@ -302,3 +302,66 @@ impl<B: SparseConvBackend> OccNetwork<B> for OccNet<B> {
         self.num_classes
     }
 }
+
+/// Float parameter shapes of a module, by path (`encoder.backbone.conv1.weight`, ...).
+pub fn param_shapes<B: Backend, M: Module<B>>(module: &M) -> Vec<(String, Vec<usize>)> {
+    struct Shapes {
+        path: Vec<String>,
+        out: Vec<(String, Vec<usize>)>,
+    }
+    impl<B: Backend> burn::module::ModuleVisitor<B> for Shapes {
+        fn enter_module(&mut self, name: &str, _container_type: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container_type: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<B, D>>) {
+            self.out
+                .push((self.path.join("."), param.lazy_shape().to_vec()));
+        }
+    }
+    let mut v = Shapes {
+        path: Vec::new(),
+        out: Vec::new(),
+    };
+    module.visit(&mut v);
+    v.out
+}
+
+/// Loads a checkpoint written by `save_file` into `fresh` (a model built from the checkpoint's
+/// config) and checks that every parameter kept its shape: burn's recorder itself accepts tensors of
+/// any shape, so a config that no longer matches its weights would otherwise fail later, obscurely.
+pub fn load_checked<B: Backend, M: Module<B>>(
+    fresh: M,
+    path: &std::path::Path,
+    device: &B::Device,
+) -> Result<M, ModelError> {
+    use burn::record::{BinFileRecorder, FullPrecisionSettings};
+    let expected = param_shapes::<B, M>(&fresh);
+    let loaded = fresh
+        .load_file(
+            path.to_path_buf(),
+            &BinFileRecorder::<FullPrecisionSettings>::new(),
+            device,
+        )
+        .map_err(|e| ModelError::Config(format!("{}: {e}", path.display())))?;
+    let got = param_shapes::<B, M>(&loaded);
+    if got.len() != expected.len() {
+        return Err(ModelError::Config(format!(
+            "{}: {} parameters, the config builds {}",
+            path.display(),
+            got.len(),
+            expected.len()
+        )));
+    }
+    for ((name, e), (_, g)) in expected.iter().zip(&got) {
+        if e != g {
+            return Err(ModelError::Config(format!(
+                "{}: parameter {name} is {g:?} in the checkpoint but {e:?} in the config",
+                path.display()
+            )));
+        }
+    }
+    Ok(loaded)
+}

@@ -9,8 +9,11 @@ use burn::prelude::*;
 use std::cell::RefCell;
 use std::time::Instant;
 
+/// Start of the current stage and the `(stage, ms)` records.
+type Records = Option<(Instant, Vec<(String, f64)>)>;
+
 thread_local! {
-    static PROFILE: RefCell<Option<(Instant, Vec<(String, f64)>)>> = const { RefCell::new(None) };
+    static PROFILE: RefCell<Records> = const { RefCell::new(None) };
 }
 
 /// Turns stage timing on (clearing earlier records) or off for this thread.

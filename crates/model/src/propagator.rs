@@ -64,7 +64,7 @@ impl PropagatorConfig {
                 self.completion_layers.len()
             )));
         }
-        if self.kernel % 2 == 0 || self.planar_kernel % 2 == 0 {
+        if self.kernel.is_multiple_of(2) || self.planar_kernel.is_multiple_of(2) {
             return Err(ModelError::Config(format!(
                 "propagator.rs: kernels must be odd (kernel {}, planar {})",
                 self.kernel, self.planar_kernel

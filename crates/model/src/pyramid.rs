@@ -55,7 +55,7 @@ impl PyramidConfig {
                 self.in_channels, self.out_channels
             )));
         }
-        if self.norm_groups == 0 || self.out_channels % self.norm_groups != 0 {
+        if self.norm_groups == 0 || !self.out_channels.is_multiple_of(self.norm_groups) {
             return Err(ModelError::Config(format!(
                 "pyramid.rs: {} GroupNorm groups do not divide {} channels",
                 self.norm_groups, self.out_channels
@@ -128,7 +128,7 @@ impl<B: Backend> SparsePyramid<B> {
                 if j == l {
                     continue;
                 }
-                let wj = w.clone().slice([j..j + 1]).reshape([1, 1]);
+                let wj = w.clone().narrow(0, j, 1).reshape([1, 1]);
                 acc = acc + interpolate(src, 1 << j, target, 1 << l)? * wj;
             }
             fused.push(target.with_feats(acc)?);
@@ -203,7 +203,7 @@ pub fn interpolation_weights<B: Backend>(
                 let mut s = [c[0], 0, 0, 0];
                 for a in 0..3 {
                     let bit = (corner >> a) & 1;
-                    s[a + 1] = base[a] + bit as i32;
+                    s[a + 1] = base[a] + bit;
                     wgt *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
                 }
                 if wgt <= 1e-12 {

@@ -18,7 +18,11 @@ type B32 = Autodiff<NdArray<f32>>;
 fn fixtures_dir() -> PathBuf {
     let p = match std::env::var_os("SPARSEOCC_FIXTURES") {
         Some(v) => PathBuf::from(v),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures"),
+        None => PathBuf::from(
+            std::env::var_os("CARGO_MANIFEST_DIR")
+                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
+        )
+        .join("../../../shared/fixtures"),
     };
     assert!(
         p.is_dir(),

@@ -45,6 +45,12 @@ fn read_npy<T: npyz::Deserialize>(path: &PathBuf) -> Result<(Vec<T>, Vec<usize>)
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| format!("{}: {e}", path.display()))?;
     let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    if npy.order() == npyz::Order::Fortran {
+        return Err(format!(
+            "{}: Fortran-order array; save it C-contiguous (numpy.ascontiguousarray)",
+            path.display()
+        ));
+    }
     let v = npy
         .into_vec::<T>()
         .map_err(|e| format!("{}: {e}", path.display()))?;

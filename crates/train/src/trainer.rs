@@ -220,9 +220,8 @@ where
         let text = std::fs::read_to_string(ck.state()).map_err(io_err(&ck.state()))?;
         let state: TrainState = serde_json::from_str(&text)
             .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", ck.state().display())))?;
-        model = model
-            .load_file(ck.model(), &recorder, device)
-            .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", ck.model().display())))?;
+        model = occ_model::load_checked(model, &ck.model(), device)
+            .map_err(|e| TrainError::Checkpoint(e.to_string()))?;
         for (which, opt) in [("decay", &mut opt_decay), ("plain", &mut opt_plain)] {
             let p = ck.optim(which);
             let rec = recorder

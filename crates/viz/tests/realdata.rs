@@ -2,7 +2,7 @@
 //! `<repo root>/../shared/realdata`): SemanticKITTI input voxels over `image_2` with `P2 · Tr`,
 //! and the Occ3D sample grid.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use occ_data::formats::{occ3d, semantic_kitti as sk};
 use occ_data::image::read_png;
@@ -15,7 +15,11 @@ use occ_viz::{
 fn realdata() -> PathBuf {
     let root = match std::env::var_os("SPARSEOCC_REALDATA") {
         Some(p) => PathBuf::from(p),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata"),
+        None => std::path::PathBuf::from(
+            std::env::var_os("CARGO_MANIFEST_DIR")
+                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
+        )
+        .join("../../../shared/realdata"),
     };
     assert!(
         root.is_dir(),

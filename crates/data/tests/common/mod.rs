@@ -4,7 +4,13 @@
 use std::path::{Path, PathBuf};
 
 fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("..")
+    // At run time when cargo provides it: a test binary reused from another checkout of the same
+    // sources must look beside this checkout.
+    std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).to_path_buf())
+        .join("..")
+        .join("..")
 }
 
 /// `$SPARSEOCC_REALDATA` or `<repo>/../shared/realdata`; panics with a clear message if absent.

@@ -90,7 +90,7 @@ pub fn downsample_depth_min(
     w: usize,
     ds: usize,
 ) -> Result<Vec<f32>, ModelError> {
-    if ds == 0 || h % ds != 0 || w % ds != 0 || depth_m.len() != h * w {
+    if ds == 0 || !h.is_multiple_of(ds) || !w.is_multiple_of(ds) || depth_m.len() != h * w {
         return Err(ModelError::Input(format!(
             "downsample_depth_min: {} depths for {h}x{w} with patch {ds} (need h, w multiples of ds)",
             depth_m.len()

@@ -18,7 +18,12 @@ type B32 = NdArray<f32>;
 const TOL: f64 = 1e-4;
 
 fn data_dir() -> PathBuf {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/resnet_tiny");
+    // The manifest dir at run time (cargo sets it), so a test binary reused from another checkout of the
+    // same sources still reads this checkout's data.
+    let manifest = std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into());
+    let dir = manifest.join("tests/data/resnet_tiny");
     assert!(
         dir.join("manifest.json").is_file(),
         "fixture folder {} (manifest.json) is missing: regenerate it with scripts/make_resnet_fixture.py",

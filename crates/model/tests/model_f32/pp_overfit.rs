@@ -54,7 +54,9 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
     let start = Instant::now();
     let mut history = Vec::new();
     let miou_before = {
-        let out = model.forward(&[feats.clone()], &[STRIDE], &batch).unwrap();
+        let out = model
+            .forward(std::slice::from_ref(&feats), &[STRIDE], &batch)
+            .unwrap();
         let mut o = out.out.clone();
         o.upsample = 1;
         miou(
@@ -63,7 +65,9 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
         )
     };
     for step in 0..80 {
-        let out = model.forward(&[feats.clone()], &[STRIDE], &batch).unwrap();
+        let out = model
+            .forward(std::slice::from_ref(&feats), &[STRIDE], &batch)
+            .unwrap();
         let losses = out.losses(&batch, &cfg, &weights).unwrap();
         if step == 0 {
             let names: Vec<&str> = losses.iter().map(|s| s.0.as_str()).collect();

@@ -57,10 +57,10 @@ fn lss_pooling_matches_brute_force_scatter() {
     // Brute force: host loop over all frustum points in f64.
     let grid = tiny_grid().downsampled(2);
     let mut expected: BTreeMap<Coord, Vec<f64>> = BTreeMap::new();
-    for b in 0..2 {
-        for v in 0..2 {
+    for (b, cams_b) in cams.iter().enumerate().take(2) {
+        for (v, cam) in cams_b.iter().enumerate().take(2) {
             let bv = b * 2 + v;
-            let inv = mat4_inverse(&cams[b][v].img_from_lidar).unwrap();
+            let inv = mat4_inverse(&cam.img_from_lidar).unwrap();
             for k in 0..d {
                 let depth = dbound[0] + k as f64 * dbound[2];
                 for i in 0..h {
@@ -473,7 +473,7 @@ fn downsample_k3s2p1(set: &BTreeSet<Coord>, shape: [usize; 3]) -> (BTreeSet<Coor
             let mut o = [c[0], 0, 0, 0];
             let mut ok = true;
             for a in 0..3 {
-                let num = c[a + 1] + 1 - kk[a] as i32;
+                let num = c[a + 1] + 1 - kk[a];
                 ok &= num >= 0 && num % 2 == 0 && ((num / 2) as usize) < out_shape[a];
                 o[a + 1] = num / 2;
             }

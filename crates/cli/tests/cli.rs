@@ -1,0 +1,336 @@
+//! End-to-end tests of the `sparseocc` binary on tiny synthetic data: train → checkpoint → resume →
+//! infer (dataset and single image) → eval → bench, and the errors users get for bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_sparseocc"));
+    c.env("CI", "1");
+    c
+}
+
+fn run(args: &[&str]) -> Output {
+    let out = bin().args(args).output().expect("run sparseocc");
+    out
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = run(args);
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "sparseocc {args:?} failed:\n{text}");
+    text
+}
+
+fn fails(args: &[&str]) -> String {
+    let out = run(args);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "sparseocc {args:?} should fail");
+    assert!(err.contains("error:"), "no error line: {err}");
+    assert!(!err.contains("panicked"), "panicked: {err}");
+    err
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("sparseocc-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A very small SparseOcc++ on the kitti-small grid.
+const TINY: &str = r#"
+[model]
+kind = "sparseocc++"
+num_classes = 20
+full_dims = [128, 128, 16]
+lss_level = 0
+
+[model.encoder.resnet]
+depth = 18
+base_width = 8
+out_indices = [1]
+
+[model.encoder.fpn]
+out_channels = 16
+
+[model.sparseocc_pp]
+embed_dim = 16
+dca_heads = 2
+keep_ratios = [1.0, 0.1, 0.1]
+
+[train]
+steps = 3
+lr = 1e-3
+checkpoint_every = 2
+
+[data]
+image_width = 160
+image_height = 64
+train_sequences = ["00"]
+val_sequences = ["08"]
+"#;
+
+fn p(x: &Path) -> &str {
+    x.to_str().unwrap()
+}
+
+#[test]
+fn train_resume_infer_eval_and_bad_input() {
+    let root = tmp("e2e");
+    let data = root.join("data");
+    ok(&["synth", "--out", p(&data), "--sequences", "00:2,08:1"]);
+    let cfg = root.join("tiny.toml");
+    std::fs::write(&cfg, TINY).unwrap();
+    let run_dir = root.join("run");
+
+    // Train 3 steps (checkpoints at 2 and 3), then resume to 4.
+    ok(&[
+        "train",
+        "--config",
+        p(&cfg),
+        "--data",
+        p(&data),
+        "--out",
+        p(&run_dir),
+    ]);
+    for f in [
+        "config.toml",
+        "grid.json",
+        "train_log.csv",
+        "summary.json",
+        "checkpoint/model.bin",
+    ] {
+        assert!(run_dir.join(f).exists(), "{f} missing");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run_dir.join("summary.json")).unwrap()).unwrap();
+    let miou = summary["miou"].as_f64().expect("validation mIoU");
+    assert!((0.0..=1.0).contains(&miou));
+    let text = ok(&[
+        "train",
+        "--data",
+        p(&data),
+        "--out",
+        p(&run_dir),
+        "--resume",
+        "--steps",
+        "4",
+    ]);
+    assert!(text.contains("resumed from step 3"), "{text}");
+    let log = std::fs::read_to_string(run_dir.join("train_log.csv")).unwrap();
+    assert_eq!(log.lines().filter(|l| l.starts_with("step,")).count(), 1);
+    assert!(log.lines().any(|l| l.starts_with("4,")), "{log}");
+
+    // Infer on the held-out sequence; every frame gets a submission file; eval scores it.
+    let pred = root.join("pred");
+    ok(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir),
+        "--data",
+        p(&data),
+        "--sequences",
+        "08",
+        "--out",
+        p(&pred),
+    ]);
+    let label = pred.join("sequences/08/predictions/000000.label");
+    assert_eq!(std::fs::metadata(&label).unwrap().len(), 128 * 128 * 16 * 2);
+    assert!(pred.join("renders/08_000000.png").exists());
+    let json = root.join("eval.json");
+    ok(&[
+        "eval",
+        "--dataset",
+        "semantickitti",
+        "--gt",
+        p(&data),
+        "--pred",
+        p(&pred),
+        "--sequences",
+        "08",
+        "--json",
+        p(&json),
+    ]);
+
+    // Single camera image with its calibration.
+    let single = root.join("single");
+    let img = data.join("sequences/08/image_2/000000.png");
+    let calib = data.join("sequences/08/calib.txt");
+    ok(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir.join("checkpoint")),
+        "--image",
+        p(&img),
+        "--calib",
+        p(&calib),
+        "--out",
+        p(&single),
+    ]);
+    assert!(single.join("000000.label").exists() && single.join("000000.png").exists());
+
+    // Bad input: clear errors, no panics.
+    let e = fails(&[
+        "train",
+        "--config",
+        p(&root.join("nope.toml")),
+        "--data",
+        p(&data),
+        "--out",
+        p(&root.join("r2")),
+    ]);
+    assert!(e.contains("nope.toml"), "{e}");
+    let bad = root.join("bad.toml");
+    std::fs::write(&bad, TINY.replace("depth = 18", "depth = 19")).unwrap();
+    let e = fails(&[
+        "train",
+        "--config",
+        p(&bad),
+        "--data",
+        p(&data),
+        "--out",
+        p(&root.join("r3")),
+    ]);
+    assert!(e.contains("bad.toml") && e.contains("19"), "{e}");
+    std::fs::write(&bad, TINY.replace("[train]", "[train]\nlearning_rate = 1")).unwrap();
+    let e = fails(&[
+        "train",
+        "--config",
+        p(&bad),
+        "--data",
+        p(&data),
+        "--out",
+        p(&root.join("r4")),
+    ]);
+    assert!(e.contains("learning_rate"), "{e}");
+    // A checkpoint whose config no longer matches its weights.
+    let mism = root.join("mismatch");
+    std::fs::create_dir_all(mism.join("checkpoint")).unwrap();
+    std::fs::copy(
+        run_dir.join("checkpoint/model.bin"),
+        mism.join("checkpoint/model.bin"),
+    )
+    .unwrap();
+    std::fs::copy(run_dir.join("grid.json"), mism.join("grid.json")).unwrap();
+    let saved = std::fs::read_to_string(run_dir.join("config.toml")).unwrap();
+    std::fs::write(
+        mism.join("config.toml"),
+        saved.replace("embed_dim = 16", "embed_dim = 24"),
+    )
+    .unwrap();
+    let e = fails(&[
+        "infer",
+        "--checkpoint",
+        p(&mism),
+        "--data",
+        p(&data),
+        "--sequences",
+        "08",
+        "--out",
+        p(&root.join("p2")),
+    ]);
+    assert!(e.contains("model.bin") && e.contains("config.toml"), "{e}");
+    // An image that does not belong to the calibration (principal point outside it).
+    let small = root.join("small.png");
+    let rgb = occ_data::image::RgbImage {
+        width: 200,
+        height: 60,
+        data: vec![90; 200 * 60 * 3],
+    };
+    occ_data::image::write_png(&small, &rgb).unwrap();
+    let e = fails(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir),
+        "--image",
+        p(&small),
+        "--calib",
+        p(&calib),
+        "--out",
+        p(&root.join("p3")),
+    ]);
+    assert!(e.contains("small.png") && e.contains("calibration"), "{e}");
+    // Missing sequence folder.
+    let e = fails(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir),
+        "--data",
+        p(&data),
+        "--sequences",
+        "05",
+        "--out",
+        p(&root.join("p4")),
+    ]);
+    assert!(e.contains("05"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn bench_reports_every_model_on_the_same_input() {
+    let root = tmp("bench");
+    let cfg = root.join("tiny.toml");
+    let tiny = TINY.to_string()
+        + "\n"
+        + r#"
+[model.sparseocc]
+lss_channels = 8
+lss_mid_channels = 8
+dbound = [2.0, 58.0, 2.0]
+propagator_channels = [8, 8, 8, 8]
+completion_layers = [1, 1, 1, 1]
+decoder_channels = 8
+norm_groups = 4
+num_queries = 4
+decoder_layers = 1
+num_heads = 2
+ffn_channels = 16
+num_points = 256
+
+[model.dense]
+lss_channels = 8
+lss_mid_channels = 8
+dbound = [2.0, 58.0, 2.0]
+encoder_channels = [8]
+"#;
+    // The [model.sparseocc] / [model.dense] tables must come inside [model]: move [train]/[data] last.
+    let (head, tail) = tiny.split_at(tiny.find("[train]").unwrap());
+    let (train_data, extra) = tail.split_at(tail.find("\n[model.sparseocc]").unwrap());
+    std::fs::write(&cfg, format!("{head}{extra}\n{train_data}")).unwrap();
+    let json = root.join("bench.json");
+    let text = ok(&[
+        "bench",
+        "--config",
+        p(&cfg),
+        "--frames",
+        "1",
+        "--warmup",
+        "0",
+        "--json",
+        p(&json),
+    ]);
+    assert!(
+        text.contains("sparseocc++") && text.contains("dense"),
+        "{text}"
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let results = v["results"].as_array().unwrap();
+    assert_eq!(results.len(), 3);
+    for r in results {
+        assert!(r["median_ms"].as_f64().unwrap() > 0.0);
+        assert!(r["peak_rss_mib"].as_f64().unwrap() > 0.0);
+        assert!(!r["profile_ms"].as_array().unwrap().is_empty());
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn check_backend_agrees_with_itself_on_the_cpu() {
+    let text = ok(&["check-backend"]);
+    assert!(text.contains("agrees with the NdArray reference"), "{text}");
+}
