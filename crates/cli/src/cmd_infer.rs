@@ -6,7 +6,7 @@
 
 use crate::backend::{self, Infer};
 use crate::cmd_viz::render_panel_set;
-use crate::labels_io::LabelGrid;
+use crate::labels_io::{read_kitti_label, LabelGrid};
 use crate::progress;
 use anyhow::{bail, Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
@@ -164,9 +164,12 @@ pub fn run(args: &InferArgs) -> Result<()> {
                     .and_then(Path::file_name)
                     .map(|s| s.to_string_lossy().into_owned())
                     .unwrap_or_default();
-                let pred = read_pred(path, grid)?;
+                let pred = read_kitti_label(path, grid)?;
                 let gt_p = paths.voxels(&seq, &stem, "label");
-                let gt = gt_p.exists().then(|| read_pred(&gt_p, grid)).transpose()?;
+                let gt = gt_p
+                    .exists()
+                    .then(|| read_kitti_label(&gt_p, grid))
+                    .transpose()?;
                 let out = args.out.join("renders").join(format!("{seq}_{stem}.png"));
                 render_panel_set(
                     gt.as_ref(),
@@ -243,14 +246,4 @@ pub fn run(args: &InferArgs) -> Result<()> {
 fn console_is_tty() -> bool {
     use std::io::IsTerminal;
     std::io::stderr().is_terminal()
-}
-
-fn read_pred(path: &Path, grid: VoxelGrid) -> Result<LabelGrid> {
-    let raw = sk::read_label_raw(path, grid.num_voxels())?;
-    Ok(LabelGrid {
-        classes: LearningMap::semantic_kitti().remap(&raw),
-        grid,
-        palette: Palette::SemanticKitti,
-        occupancy_only: false,
-    })
 }

@@ -43,6 +43,17 @@ fn kitti_grid_for(path: &Path, n: usize) -> Result<VoxelGrid> {
     )
 }
 
+/// Reads a SemanticKITTI `.label` file (raw ids, any grid) on a known grid as learning classes.
+pub fn read_kitti_label(path: &Path, grid: VoxelGrid) -> Result<LabelGrid> {
+    let raw = sk::read_label_raw(path, grid.num_voxels())?;
+    Ok(LabelGrid {
+        classes: LearningMap::semantic_kitti().remap(&raw),
+        grid,
+        palette: Palette::SemanticKitti,
+        occupancy_only: false,
+    })
+}
+
 /// Reads `.label` (raw SemanticKITTI ids), `.bin`/`.invalid`/`.occluded` (packed occupancy), `.npy`
 /// (preprocessed class grid) or `labels.npz` (Occ3D).
 pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
@@ -58,16 +69,7 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
         .with_context(|| format!("{}: cannot read", path.display()))?
         .len() as usize;
     match ext {
-        "label" => {
-            let grid = kitti_grid_for(path, len / 2)?;
-            let raw = sk::read_label_raw(path, grid.num_voxels())?;
-            Ok(LabelGrid {
-                classes: LearningMap::semantic_kitti().remap(&raw),
-                grid,
-                palette: Palette::SemanticKitti,
-                occupancy_only: false,
-            })
-        }
+        "label" => read_kitti_label(path, kitti_grid_for(path, len / 2)?),
         "bin" | "invalid" | "occluded" => {
             let grid = kitti_grid_for(path, len * 8)?;
             let bits = sk::read_packed_bits(path, grid.num_voxels())?;

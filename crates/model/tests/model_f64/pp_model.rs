@@ -5,6 +5,7 @@ use crate::pp_common;
 
 use burn::module::Param;
 use burn::prelude::*;
+use burn::tensor::TensorData;
 use occ_model::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
 use occ_model::scf_head::{ScfDecomposition, ScfLearning};
 use occ_model::sparseocc_pp::{PPOutput, SparseOccPP, SparseOccPPConfig};
@@ -202,12 +203,24 @@ fn propagation_inside_the_model_is_algorithm1() {
     let cfg = tiny_config();
     let device = Default::default();
     let mut model: SparseOccPP<NB> = cfg.try_init(&device).unwrap();
-    // Spread the SCF predictions over all bins so that many anchors are interior.
+    // Spread the SCF predictions over all bins, with a bias towards the negative (interior) ones, so
+    // that many anchors are interior whatever the random initialisation of the other layers (tests of
+    // this binary share burn's RNG across threads, so the init is not reproducible).
     let head = model.scf.as_mut().unwrap();
     for mlp in [&mut head.planar, head.vertical.as_mut().unwrap()] {
         let w = mlp.fc2.weight.val();
         let dims = w.dims();
         mlp.fc2.weight = Param::from_tensor(randn::<NB, 2>(dims, 77, &device) * 5.0);
+        let k = dims[1];
+        let s_max = (k - 1) / 2;
+        // Bins 0..s_max-1 are s = -s_max..-2.
+        let bias: Vec<f64> = (0..k)
+            .map(|i| if i + 1 < s_max { 8.0 } else { 0.0 })
+            .collect();
+        mlp.fc2.bias = Some(Param::from_tensor(Tensor::<NB, 1>::from_data(
+            TensorData::new(bias, [k]),
+            &device,
+        )));
     }
     let bsz = 2;
     let batch = batch::<NB>(bsz, 3, &device);
