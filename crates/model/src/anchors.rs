@@ -324,20 +324,6 @@ pub struct AnchorOutput<B: Backend> {
     pub stats: Vec<(String, usize)>,
 }
 
-fn level_grid_coords(batch: usize, dims: [usize; 3]) -> Vec<Coord> {
-    let mut v = Vec::with_capacity(batch * dims.iter().product::<usize>());
-    for b in 0..batch {
-        for x in 0..dims[0] {
-            for y in 0..dims[1] {
-                for z in 0..dims[2] {
-                    v.push([b as i32, x as i32, y as i32, z as i32]);
-                }
-            }
-        }
-    }
-    v
-}
-
 impl<B: Backend> AnchorGenerator<B> {
     /// The generation mode.
     pub fn mode(&self) -> AnchorMode {
@@ -409,7 +395,7 @@ impl<B: Backend> AnchorGenerator<B> {
                         "anchors: coarse-to-fine needs 3 stages and 2 child tables".into(),
                     ));
                 }
-                let mut coords = level_grid_coords(bsz, self.level_dims(0));
+                let mut coords = occ_sparse::full_grid_coords(bsz, self.level_dims(0));
                 let mut feats = self.embed0.val().repeat_dim(0, bsz);
                 for r in 0..3 {
                     let n = coords.len();

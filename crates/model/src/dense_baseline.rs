@@ -1,6 +1,13 @@
 //! Dense baseline: the paper's "all modules disabled" ablation row (DESIGN.md): LSS into a DENSE voxel
-//! grid → a dense 3D convolutional encoder (`Conv3d 3x3x3` + BatchNorm + ReLU per layer) → a linear
-//! `1x1x1` head over every voxel. It exists to measure the sparse models against.
+//! grid → a dense 3D convolutional encoder (`Conv3d 3x3x3`, zero padding 1, + BatchNorm + ReLU per
+//! layer) → a linear `1x1x1` head over every voxel. It exists to measure the sparse models against.
+//!
+//! The dense convolutions run on the gather-GEMM engine of `occ-sparse` with EVERY voxel of the grid
+//! active: a 3x3x3 submanifold convolution over a full grid is exactly a dense `Conv3d` with zero
+//! padding 1 (neighbours outside the grid are absent, i.e. zero), computed at GEMM speed. burn-ndarray's
+//! own `conv3d` is a direct loop (about 0.5 GFLOP/s on the 2-core CPU, 30-60x slower than GEMM), which
+//! would make the baseline an unfair peer; `tests/model_f64/so_units.rs` checks the layer against
+//! burn's `conv3d`. Weights use the sparse layout `[Cout, kx, ky, kz, Cin]`.
 //!
 //! Losses: weighted cross-entropy (ignore 255) over all prediction-grid voxels against the
 //! downsampled labels ([`crate::sparseocc::downsample_labels_mode`]) and the LSS depth loss.
@@ -10,10 +17,13 @@ use crate::error::ModelError;
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
 use crate::sparseocc::{check_input, targets_at, weighted_cross_entropy};
-use burn::nn::conv::{Conv3d, Conv3dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig3d};
+use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
+use occ_sparse::norm::SparseBatchNorm;
+use occ_sparse::{
+    full_grid_coords, SparseConv3d, SparseConv3dConfig, SparseConvBackend, SparseTensor,
+};
 
 /// Configuration of [`DenseBaseline`].
 #[derive(Config, Debug)]
@@ -67,20 +77,15 @@ impl DenseBaselineConfig {
         let mut norms = Vec::new();
         let mut cin = self.lss_channels;
         for &cout in &self.encoder_channels {
-            convs.push(
-                Conv3dConfig::new([cin, cout], [3, 3, 3])
-                    .with_padding(PaddingConfig3d::Explicit(1, 1, 1))
-                    .with_bias(false)
-                    .init(device),
-            );
-            norms.push(BatchNormConfig::new(cout).init(device));
+            convs.push(dense_conv_config(cin, cout).init(device));
+            norms.push(SparseBatchNorm::new(cout, device));
             cin = cout;
         }
         Ok(DenseBaseline {
             lss,
             convs,
             norms,
-            head: Conv3dConfig::new([cin, self.num_classes], [1, 1, 1]).init(device),
+            head: LinearConfig::new(cin, self.num_classes).init(device),
             num_classes: self.num_classes,
             feat_channels: self.feat_channels,
             full_dims: self.full_dims,
@@ -90,14 +95,20 @@ impl DenseBaselineConfig {
     }
 }
 
+/// The dense `3x3x3` convolution (zero padding 1, no bias) as a submanifold convolution, which it is
+/// on a grid whose every voxel is active.
+pub fn dense_conv_config(channels_in: usize, channels_out: usize) -> SparseConv3dConfig {
+    SparseConv3dConfig::new(channels_in, channels_out, [3, 3, 3])
+}
+
 /// LSS + dense 3D CNN + linear head.
 #[derive(Module, Debug)]
 pub struct DenseBaseline<B: Backend> {
     /// View transform.
     pub lss: Lss<B>,
-    convs: Vec<Conv3d<B>>,
-    norms: Vec<BatchNorm<B>>,
-    head: Conv3d<B>,
+    convs: Vec<SparseConv3d<B>>,
+    norms: Vec<SparseBatchNorm<B>>,
+    head: Linear<B>,
     num_classes: usize,
     feat_channels: usize,
     full_dims: [usize; 3],
@@ -130,7 +141,7 @@ pub struct DenseOutput<B: Backend> {
     pub aux: DenseAux<B>,
 }
 
-impl<B: Backend> DenseBaseline<B> {
+impl<B: SparseConvBackend> DenseBaseline<B> {
     /// Runs the model.
     ///
     /// # Shapes
@@ -145,28 +156,19 @@ impl<B: Backend> DenseBaseline<B> {
         check_input(&feats, batch, self.feat_channels, self.full_dims)?;
         let [_, _, h, w] = feats.dims();
         let lss_out = self.lss.forward(feats, stride, batch)?;
-        let mut x = lss_out.splat_dense()?;
+        let x = lss_out.splat_dense()?;
         crate::profile::mark("lss", &x);
+        let [b, c, dx, dy, dz] = x.dims();
+        let coords = full_grid_coords(b, [dx, dy, dz]);
+        let feats = x.permute([0, 2, 3, 4, 1]).reshape([b * dx * dy * dz, c]);
+        let mut t = SparseTensor::new(coords, feats, [dx, dy, dz], b)?;
         for (conv, norm) in self.convs.iter().zip(&self.norms) {
-            x = relu(norm.forward(conv.forward(x)));
+            t = norm.forward(conv.forward(t)?)?.map_feats(relu)?;
         }
-        crate::profile::mark("dense_encoder", &x);
-        let logits = self.head.forward(x);
+        crate::profile::mark("dense_encoder", t.feats());
+        let coords = t.coords().to_vec();
+        let logits = self.head.forward(t.into_feats());
         crate::profile::mark("head", &logits);
-        let [b, c, dx, dy, dz] = logits.dims();
-        let logits = logits
-            .permute([0, 2, 3, 4, 1])
-            .reshape([b * dx * dy * dz, c]);
-        let mut coords = Vec::with_capacity(b * dx * dy * dz);
-        for bi in 0..b {
-            for i in 0..dx {
-                for j in 0..dy {
-                    for k in 0..dz {
-                        coords.push([bi as i32, i as i32, j as i32, k as i32]);
-                    }
-                }
-            }
-        }
         let hit = lss_out.frustum.hit_voxels().0.len();
         let out = ModelOutput {
             coords,

@@ -28,6 +28,7 @@ pub mod sample;
 pub mod scf_head;
 pub mod sparseocc;
 pub mod sparseocc_pp;
+pub mod subvoxel;
 pub mod unet;
 pub mod weights;
 

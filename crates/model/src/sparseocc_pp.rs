@@ -1,7 +1,8 @@
 //! SparseOcc++ assembly (paper Sec. 4): multi-scale image features → sparse anchors
 //! ([`crate::anchors`]) → SCF heads ([`crate::scf_head`]) → geometry-guided propagation
 //! ([`crate::propagation`]) → DCA on the completed set ([`crate::dca`]) → sparse U-Net
-//! ([`crate::unet`]) → per-voxel class logits at `1/2` resolution.
+//! ([`crate::unet`]) → per-voxel class logits at `1/2` resolution (or, with
+//! [`OutputResolution::SubVoxel`], at full resolution through [`crate::subvoxel`]).
 //!
 //! The image encoder is not part of this module: `forward` takes its multi-scale features. Losses are
 //! not computed here either: [`PPOutput`] carries every prediction and [`pp_targets`] builds the
@@ -22,10 +23,21 @@ use crate::propagation::propagate_anchors;
 use crate::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
+use crate::subvoxel::{SubVoxelHead, SubVoxelHeadConfig};
 use crate::unet::{SparseUNet, SparseUNetConfig};
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use occ_sparse::{Coord, SparseConvBackend};
+
+/// Resolution of the final logits.
+#[derive(Config, Debug, Copy, PartialEq, Eq)]
+pub enum OutputResolution {
+    /// The paper's: logits at `1/2` of the label grid (upsampled ×2 for scoring).
+    Half,
+    /// Not in the paper: a learned split of every `1/2` voxel into its 8 full-resolution children
+    /// ([`crate::subvoxel`]); `L_occ` is then computed at full resolution.
+    SubVoxel,
+}
 
 /// Configuration of [`SparseOccPP`]. Defaults follow the paper where it is explicit; the choices
 /// where it is silent are documented on each field and in the module docs of the stages.
@@ -82,6 +94,9 @@ pub struct SparseOccPPConfig {
     /// Weight of `L_scf` (CE on the planar and vertical bins, or L1 in the regression ablation).
     #[config(default = 1.0)]
     pub scf_loss_weight: f64,
+    /// Resolution of the final logits (paper: `1/2`).
+    #[config(default = "OutputResolution::Half")]
+    pub output: OutputResolution,
 }
 
 impl SparseOccPPConfig {
@@ -143,6 +158,8 @@ impl SparseOccPPConfig {
             dca: self.dca().init(device),
             unet: unet.init(device),
             head: LinearConfig::new(c0, self.num_classes.max(1)).init(device),
+            subvoxel: (self.output == OutputResolution::SubVoxel)
+                .then(|| SubVoxelHeadConfig::new(c0).init(device)),
             config: self.clone(),
         }
     }
@@ -168,16 +185,19 @@ pub struct SparseOccPP<B: Backend> {
     pub dca: DeformableCrossAttention<B>,
     /// Sparse U-Net.
     pub unet: SparseUNet<B>,
-    /// Final classifier.
+    /// Final classifier (of the `1/2` voxels, or of their children with the sub-voxel head).
     pub head: Linear<B>,
+    /// Full-resolution output head (present with [`OutputResolution::SubVoxel`]).
+    pub subvoxel: Option<SubVoxelHead<B>>,
     config: SparseOccPPConfig,
 }
 
 /// Everything SparseOcc++ predicts.
 #[derive(Clone, Debug)]
 pub struct PPOutput<B: Backend> {
-    /// Final voxels `(b, x, y, z)` on `full/2`, logits `[N, num_classes]`, `upsample = 2`, stats;
-    /// `losses` is left empty.
+    /// Final voxels `(b, x, y, z)` on `full/2`, logits `[N, num_classes]`, `upsample = 2`, stats
+    /// (with [`OutputResolution::SubVoxel`]: the children on `full`, `upsample = 1`); `losses` is
+    /// left empty.
     pub out: ModelOutput<B>,
     /// Per anchor level (1/8, 1/4, 1/2; one level for uniform anchors): candidates and class logits.
     pub anchor_levels: Vec<LevelPrediction<B>>,
@@ -237,7 +257,8 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
     ///
     /// # Shapes
     /// - `feats[l]`: `[B·V, C, h_l, w_l]` (image `b·V + v`), `strides[l]` input pixels per feature pixel
-    /// - returns logits `[N, num_classes]` on `N` voxels of `full_dims / 2`
+    /// - returns logits `[N, num_classes]` on `N` voxels of `full_dims / 2` (of `full_dims` with
+    ///   [`OutputResolution::SubVoxel`])
     pub fn forward(
         &self,
         feats: &[Tensor<B, 4>],
@@ -287,15 +308,22 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
         let x = self.unet.forward(completed.with_feats(x)?)?;
         crate::profile::mark("unet", x.feats());
         let coords: Vec<Coord> = x.coords().to_vec();
-        let logits = self.head.forward(x.into_feats());
-        crate::profile::mark("head", &logits);
         stats.push(("final".to_string(), coords.len()));
+        let (coords, logits, out_dims, upsample) = match &self.subvoxel {
+            Some(sv) => {
+                let (children, logits) = sv.forward(&coords, x.into_feats(), &self.head)?;
+                stats.push(("final_full_res".to_string(), children.len()));
+                (children, logits, cfg.full_dims, 1)
+            }
+            None => (coords, self.head.forward(x.into_feats()), out_dims, 2),
+        };
+        crate::profile::mark("head", &logits);
         Ok(PPOutput {
             out: ModelOutput {
                 coords,
                 logits,
                 out_dims,
-                upsample: 2,
+                upsample,
                 losses: Vec::new(),
                 stats,
             },
@@ -308,7 +336,8 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
 /// Host-side labels for every prediction of [`PPOutput`] (255 = ignore everywhere).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct PPTargets {
-    /// Class label of each final voxel (`out.coords` order): the MonoScene rule on its 2×2×2 children.
+    /// Class label of each final voxel (`out.coords` order): the MonoScene rule on its 2×2×2 children
+    /// (the full-resolution label itself for a full-resolution output).
     pub labels: Vec<u8>,
     /// Per anchor level, the class label of each candidate (`coords` order): the MonoScene rule on its
     /// `factor³` full-resolution children.
@@ -428,7 +457,11 @@ pub fn pp_targets<B: Backend>(
     };
     let half = grids_for(2);
     let half_dims = full_dims.map(|d| d / 2);
-    let labels = lookup(&out.out.coords, &half, half_dims)?;
+    let labels = if out.out.upsample == 1 {
+        lookup(&out.out.coords, target, full_dims)?
+    } else {
+        lookup(&out.out.coords, &half, half_dims)?
+    };
     let mut anchor_labels = Vec::with_capacity(out.anchor_levels.len());
     for lvl in &out.anchor_levels {
         let g = if lvl.factor == 2 {

@@ -148,7 +148,9 @@ static NEXT_ID: AtomicU64 = AtomicU64::new(1);
 /// convolution restores the parent coordinates.
 pub struct CoordSet {
     coords: Vec<Coord>,
-    index: CoordIndex,
+    /// Built eagerly by the validating constructors, lazily (on the first lookup) for sets made by
+    /// kernel-map building, which often never need it.
+    index: std::sync::OnceLock<CoordIndex>,
     spatial_shape: [usize; 3],
     batch_size: usize,
     tensor_stride: [usize; 3],
@@ -238,7 +240,7 @@ impl CoordSet {
     ) -> Self {
         Self {
             coords,
-            index,
+            index: std::sync::OnceLock::from(index),
             spatial_shape,
             batch_size,
             tensor_stride,
@@ -248,18 +250,23 @@ impl CoordSet {
         }
     }
 
-    /// Builds a set from valid unique coordinates, indexing them.
+    /// Builds a set from valid unique coordinates; the hash index is built on first use.
     pub(crate) fn from_valid_unique(
         coords: Vec<Coord>,
         spatial_shape: [usize; 3],
         batch_size: usize,
         tensor_stride: [usize; 3],
     ) -> Self {
-        let mut index = CoordIndex::with_capacity(coords.len());
-        for (row, &c) in coords.iter().enumerate() {
-            index.insert(pack(c), row as u32);
+        Self {
+            coords,
+            index: std::sync::OnceLock::new(),
+            spatial_shape,
+            batch_size,
+            tensor_stride,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            cache: Mutex::new(HashMap::new()),
+            parents: Mutex::new(Vec::new()),
         }
-        Self::from_trusted(coords, index, spatial_shape, batch_size, tensor_stride)
     }
 
     /// The coordinates, row `i` belonging to feature row `i`.
@@ -292,7 +299,13 @@ impl CoordSet {
     }
     /// The hash index.
     pub fn index(&self) -> &CoordIndex {
-        &self.index
+        self.index.get_or_init(|| {
+            let mut index = CoordIndex::with_capacity(self.coords.len());
+            for (row, &c) in self.coords.iter().enumerate() {
+                index.insert(pack(c), row as u32);
+            }
+            index
+        })
     }
     /// Row of a coordinate, if active. Out-of-range coordinates are simply absent.
     #[inline]
@@ -303,7 +316,7 @@ impl CoordSet {
         if !in_range {
             return None;
         }
-        self.index.get(pack(c)).map(|r| r as usize)
+        self.index().get(pack(c)).map(|r| r as usize)
     }
     /// Permutation that sorts the rows by (b, x, y, z).
     pub fn sorted_order(&self) -> Vec<usize> {
@@ -328,6 +341,22 @@ pub(crate) fn unique_sorted(mut keys: Vec<u64>) -> Vec<Coord> {
     keys.sort_unstable();
     keys.dedup();
     keys.into_iter().map(unpack).collect()
+}
+
+/// Every site of a `[B, X, Y, Z]` grid in C order (`b` slowest, `z` fastest): the row order of a dense
+/// `[B, C, X, Y, Z]` tensor permuted to `[B, X, Y, Z, C]` and flattened.
+pub fn full_grid_coords(batch: usize, dims: [usize; 3]) -> Vec<Coord> {
+    let mut coords = Vec::with_capacity(batch * dims.iter().product::<usize>());
+    for b in 0..batch {
+        for x in 0..dims[0] {
+            for y in 0..dims[1] {
+                for z in 0..dims[2] {
+                    coords.push([b as i32, x as i32, y as i32, z as i32]);
+                }
+            }
+        }
+    }
+    coords
 }
 
 /// Shared handle.

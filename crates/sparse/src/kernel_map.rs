@@ -210,7 +210,8 @@ impl KernelMap {
     pub fn num_pairs(&self) -> usize {
         self.in_idx.len()
     }
-    /// Milliseconds spent building this map (pairs only, excluding output-coordinate search).
+    /// Milliseconds spent building this map (the pairs; for a regular convolution on a well-filled grid
+    /// also the output sites, which the dense path finds in the same passes).
     pub fn build_ms(&self) -> f64 {
         self.build_ms
     }
@@ -278,6 +279,217 @@ pub(crate) struct ParentLink {
 
 const CHUNK: usize = 2048;
 
+/// A grid of `[B, X, Y, Z]` voxels gets a dense row table (4 bytes per voxel) when it has at most this
+/// many voxels per active site; sparser grids use the hash index. The table then costs at most twice
+/// the hash index's memory (16 bytes per slot at load factor 1/2), so memory stays linear in the
+/// active sites, and a lookup is one load instead of a hash probe.
+const DENSE_VOXELS_PER_SITE: usize = 16;
+
+/// Row of every voxel of a `[B, X, Y, Z]` grid (`u32::MAX` = inactive): the dense alternative to the
+/// hash index for kernel-map building on well-filled grids.
+struct DenseRows {
+    shape: [usize; 3],
+    batch: usize,
+    rows: Vec<u32>,
+}
+
+impl DenseRows {
+    /// An empty table for the grid, if the grid is small enough for `n_sites` active sites.
+    fn empty(batch: usize, shape: [usize; 3], n_sites: usize) -> Option<Self> {
+        let volume = shape.iter().try_fold(batch, |acc, &d| acc.checked_mul(d))?;
+        if n_sites == 0 || volume > DENSE_VOXELS_PER_SITE.saturating_mul(n_sites) {
+            return None;
+        }
+        Some(Self {
+            shape,
+            batch,
+            rows: vec![u32::MAX; volume],
+        })
+    }
+
+    /// The table of an existing set.
+    fn of_set(set: &CoordSet) -> Option<Self> {
+        let mut t = Self::empty(set.batch_size(), set.spatial_shape(), set.len())?;
+        for (row, &c) in set.coords().iter().enumerate() {
+            let i = t.lin_unchecked(c);
+            t.rows[i] = row as u32;
+        }
+        Some(t)
+    }
+
+    #[inline]
+    fn lin_unchecked(&self, c: Coord) -> usize {
+        let [sx, sy, sz] = self.shape;
+        ((c[0] as usize * sx + c[1] as usize) * sy + c[2] as usize) * sz + c[3] as usize
+    }
+
+    #[inline]
+    fn lin(&self, c: Coord) -> Option<usize> {
+        let inside = c[0] >= 0
+            && (c[0] as usize) < self.batch
+            && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < self.shape[a]);
+        inside.then(|| self.lin_unchecked(c))
+    }
+
+    #[inline]
+    fn get(&self, c: Coord) -> Option<u32> {
+        self.lin(c).map(|i| self.rows[i]).filter(|&r| r != u32::MAX)
+    }
+}
+
+/// Output `o` of a regular convolution connected to input `c` through offset `k`
+/// (`o = (c + p - k d) / s` when exact and inside the output grid).
+#[inline]
+fn regular_output_of(
+    c: Coord,
+    k: [usize; 3],
+    s: [i32; 3],
+    p: [i32; 3],
+    d: [i32; 3],
+    os: [i32; 3],
+) -> Option<Coord> {
+    let mut o = [c[0], 0, 0, 0];
+    for a in 0..3 {
+        let t = c[a + 1] + p[a] - k[a] as i32 * d[a];
+        if t < 0 || t % s[a] != 0 || t / s[a] >= os[a] {
+            return None;
+        }
+        o[a + 1] = t / s[a];
+    }
+    Some(o)
+}
+
+/// Regular convolution on a well-filled grid, without hashing: mark the outputs reached from every
+/// input and offset in a dense table of the output grid, number them in (b, x, y, z) order by one scan
+/// of the table, then emit the pairs input-major over the inputs in (b, x, y, z) order. For a fixed
+/// offset the input → output correspondence is a translation followed by an exact division, which
+/// preserves that order, so each offset's pairs come out sorted by output row without a sort.
+/// `None` when the output grid is too large for a table (the hash path is used then).
+fn build_regular_dense(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    out_shape: [usize; 3],
+) -> Option<(Vec<Coord>, KernelMap)> {
+    let t0 = Instant::now();
+    let kv = geom.volume();
+    let mut table = DenseRows::empty(input.batch_size(), out_shape, input.len())?;
+    let mut scratch = Vec::new();
+    // 1. Mark every reachable output.
+    for &c in input.coords() {
+        for_each_regular_output(c, geom, out_shape, &mut scratch, |_, lin| {
+            table.rows[lin] = 0
+        });
+    }
+    // 2. Number them in linear (= lexicographic) order.
+    let mut outputs = Vec::new();
+    let [sx, sy, sz] = out_shape;
+    let mut next = 0u32;
+    let mut i = 0usize;
+    for b in 0..input.batch_size() as i32 {
+        for x in 0..sx as i32 {
+            for y in 0..sy as i32 {
+                for z in 0..sz as i32 {
+                    let r = &mut table.rows[i];
+                    if *r == 0 {
+                        *r = next;
+                        next += 1;
+                        outputs.push([b, x, y, z]);
+                    }
+                    i += 1;
+                }
+            }
+        }
+    }
+    // 3. Pairs, input-major in sorted input order.
+    let coords = input.coords();
+    let sorted = coords.windows(2).all(|w| pack(w[0]) < pack(w[1]));
+    let order: Vec<u32> = if sorted {
+        (0..coords.len() as u32).collect()
+    } else {
+        input.sorted_order().into_iter().map(|i| i as u32).collect()
+    };
+    let table = &table;
+    let chunks: Vec<Vec<(Vec<u32>, Vec<u32>)>> = order
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut per: Vec<(Vec<u32>, Vec<u32>)> = (0..kv)
+                .map(|_| {
+                    (
+                        Vec::with_capacity(chunk.len()),
+                        Vec::with_capacity(chunk.len()),
+                    )
+                })
+                .collect();
+            let mut scratch = Vec::new();
+            for &row in chunk {
+                for_each_regular_output(
+                    coords[row as usize],
+                    geom,
+                    out_shape,
+                    &mut scratch,
+                    |k, lin| {
+                        per[k].0.push(row);
+                        per[k].1.push(table.rows[lin]);
+                    },
+                );
+            }
+            per
+        })
+        .collect();
+    let map = assemble(kv, input.len(), outputs.len(), &chunks, t0);
+    Some((outputs, map))
+}
+
+/// Calls `f(k, linear output index)` for every offset `k` through which input `c` reaches an output of
+/// a regular convolution on an output grid of `out_shape` (linear index `((b·X + x)·Y + y)·Z + z`).
+/// The per-axis output coordinates are computed once per kernel index (`Kx + Ky + Kz` divisions, not
+/// `3·Kx·Ky·Kz`), then combined.
+#[inline]
+fn for_each_regular_output(
+    c: Coord,
+    geom: &ConvGeometry,
+    out_shape: [usize; 3],
+    scratch: &mut Vec<i32>,
+    mut f: impl FnMut(usize, usize),
+) {
+    let [kx, ky, kz] = geom.kernel;
+    scratch.clear();
+    for a in 0..3 {
+        let (s, p, d) = (
+            geom.stride[a] as i32,
+            geom.padding[a] as i32,
+            geom.dilation[a] as i32,
+        );
+        for ka in 0..geom.kernel[a] {
+            let t = c[a + 1] + p - ka as i32 * d;
+            let o = if t < 0 || t % s != 0 { -1 } else { t / s };
+            scratch.push(if o >= out_shape[a] as i32 { -1 } else { o });
+        }
+    }
+    let (ax, rest) = scratch.split_at(kx);
+    let (ay, az) = rest.split_at(ky);
+    let [sx, sy, sz] = out_shape;
+    let base = c[0] as usize * sx;
+    for (ix, &ox) in ax.iter().enumerate() {
+        if ox < 0 {
+            continue;
+        }
+        let bx = (base + ox as usize) * sy;
+        for (iy, &oy) in ay.iter().enumerate() {
+            if oy < 0 {
+                continue;
+            }
+            let bxy = (bx + oy as usize) * sz;
+            let kxy = (ix * ky + iy) * kz;
+            for (iz, &oz) in az.iter().enumerate() {
+                if oz >= 0 {
+                    f(kxy + iz, bxy + oz as usize);
+                }
+            }
+        }
+    }
+}
+
 /// Builds the pairs for the given output sites: `input_of(out_coord, offset)` gives the input coordinate
 /// connected to an output through an offset (or None).
 fn build_pairs<F>(
@@ -288,6 +500,26 @@ fn build_pairs<F>(
 ) -> KernelMap
 where
     F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
+{
+    match DenseRows::of_set(input) {
+        Some(table) => build_pairs_with(input.len(), outputs, geom, input_of, |c| table.get(c)),
+        None => build_pairs_with(input.len(), outputs, geom, input_of, |c| {
+            input.find(c).map(|r| r as u32)
+        }),
+    }
+}
+
+/// [`build_pairs`] with an explicit input lookup.
+fn build_pairs_with<F, L>(
+    n_in: usize,
+    outputs: &[Coord],
+    geom: &ConvGeometry,
+    input_of: F,
+    find: L,
+) -> KernelMap
+where
+    F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
+    L: Fn(Coord) -> Option<u32> + Sync,
 {
     let t0 = Instant::now();
     let offsets = geom.offsets();
@@ -308,8 +540,8 @@ where
                 let orow = (ci * CHUNK + j) as u32;
                 for (k, off) in offsets.iter().enumerate() {
                     if let Some(ic) = input_of(o, *off) {
-                        if let Some(irow) = input.find(ic) {
-                            per[k].0.push(irow as u32);
+                        if let Some(irow) = find(ic) {
+                            per[k].0.push(irow);
                             per[k].1.push(orow);
                         }
                     }
@@ -318,19 +550,27 @@ where
             per
         })
         .collect();
-    let mut counts = vec![0usize; kv];
-    for c in &chunks {
-        for (k, p) in c.iter().enumerate() {
-            counts[k] += p.0.len();
-        }
-    }
-    let total: usize = counts.iter().sum();
+    assemble(kv, n_in, outputs.len(), &chunks, t0)
+}
+
+/// Concatenates per-chunk, per-offset pair lists (chunks in output order) into one map.
+fn assemble(
+    kv: usize,
+    n_in: usize,
+    n_out: usize,
+    chunks: &[Vec<(Vec<u32>, Vec<u32>)>],
+    t0: Instant,
+) -> KernelMap {
+    let total: usize = chunks
+        .iter()
+        .flat_map(|c| c.iter().map(|p| p.0.len()))
+        .sum();
     let mut in_idx = Vec::with_capacity(total);
     let mut out_idx = Vec::with_capacity(total);
     let mut offset_start = Vec::with_capacity(kv + 1);
     offset_start.push(0);
     for k in 0..kv {
-        for c in &chunks {
+        for c in chunks {
             in_idx.extend_from_slice(&c[k].0);
             out_idx.extend_from_slice(&c[k].1);
         }
@@ -338,8 +578,8 @@ where
     }
     KernelMap {
         kernel_volume: kv,
-        n_in: input.len(),
-        n_out: outputs.len(),
+        n_in,
+        n_out,
         in_idx,
         out_idx,
         offset_start,
@@ -379,6 +619,20 @@ pub fn build_regular(
     geom: &ConvGeometry,
 ) -> Result<(Vec<Coord>, [usize; 3], KernelMap)> {
     let out_shape = geom.regular_output_shape(input.spatial_shape())?;
+    if let Some((outputs, map)) = build_regular_dense(input, geom, out_shape) {
+        return Ok((outputs, out_shape, map));
+    }
+    let (outputs, map) = build_regular_hashed(input, geom, out_shape);
+    Ok((outputs, out_shape, map))
+}
+
+/// Regular convolution on a sparse grid: candidate outputs of every input and offset, sorted and
+/// deduplicated, then the pairs by probing the input's hash index from every output.
+fn build_regular_hashed(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    out_shape: [usize; 3],
+) -> (Vec<Coord>, KernelMap) {
     let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
     let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
     let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
@@ -391,31 +645,28 @@ pub fn build_regular(
         .flat_map_iter(|chunk| {
             let mut v = Vec::with_capacity(chunk.len() * offsets.len());
             for &c in chunk {
-                'off: for k in &offsets {
-                    let mut o = [c[0], 0, 0, 0];
-                    for a in 0..3 {
-                        let t = c[a + 1] + p[a] - k[a] as i32 * d[a];
-                        if t < 0 || t % s[a] != 0 || t / s[a] >= os[a] {
-                            continue 'off;
-                        }
-                        o[a + 1] = t / s[a];
+                for k in &offsets {
+                    if let Some(o) = regular_output_of(c, *k, s, p, d, os) {
+                        v.push(pack(o));
                     }
-                    v.push(pack(o));
                 }
             }
             v
         })
         .collect();
     let outputs = unique_sorted(keys);
-    let map = build_pairs(input, &outputs, geom, |o, k| {
+    let input_of = |o: Coord, k: [usize; 3]| {
         Some([
             o[0],
             o[1] * s[0] - p[0] + k[0] as i32 * d[0],
             o[2] * s[1] - p[1] + k[1] as i32 * d[1],
             o[3] * s[2] - p[2] + k[2] as i32 * d[2],
         ])
+    };
+    let map = build_pairs_with(input.len(), &outputs, geom, input_of, |c| {
+        input.find(c).map(|r| r as u32)
     });
-    Ok((outputs, out_shape, map))
+    (outputs, map)
 }
 
 /// Output sites and map of a transposed convolution.
@@ -566,4 +817,99 @@ pub fn inverse_of(
         .find(|l| l.geometry == geometry)
         .map(|l| (l.parent.clone(), l.map.transposed()))
         .ok_or_else(|| SparseError::NoInverseMap(format!("{geometry:?}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn random_set(seed: u64, shape: [usize; 3], batch: usize, n: usize, sorted: bool) -> CoordSet {
+        let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut seen = std::collections::HashSet::new();
+        let mut coords = Vec::new();
+        while coords.len() < n {
+            let c = [
+                r.random_range(0..batch as i32),
+                r.random_range(0..shape[0] as i32),
+                r.random_range(0..shape[1] as i32),
+                r.random_range(0..shape[2] as i32),
+            ];
+            if seen.insert(c) {
+                coords.push(c);
+            }
+        }
+        if sorted {
+            coords.sort_by_key(|&c| pack(c));
+        }
+        CoordSet::new(coords, shape, batch).unwrap()
+    }
+
+    fn all_pairs(m: &KernelMap) -> Vec<Vec<(u32, u32)>> {
+        (0..m.kernel_volume())
+            .map(|k| {
+                let (i, o) = m.pairs(k);
+                i.iter().copied().zip(o.iter().copied()).collect()
+            })
+            .collect()
+    }
+
+    /// The dense-table path and the hash path give the same outputs and the same pairs, in the same
+    /// order (sorted by output row within each offset), for every geometry, sorted or shuffled inputs.
+    #[test]
+    fn dense_and_hashed_regular_maps_agree() {
+        let geoms = [
+            ConvGeometry::new([3, 3, 3]).with_padding([1, 1, 1]),
+            ConvGeometry::new([3, 3, 3])
+                .with_stride([2, 2, 2])
+                .with_padding([1, 1, 1]),
+            ConvGeometry::new([2, 2, 2]).with_stride([2, 2, 2]),
+            ConvGeometry::new([3, 1, 3])
+                .with_stride([2, 1, 1])
+                .with_padding([0, 0, 1])
+                .with_dilation([1, 1, 2]),
+            ConvGeometry::new([5, 5, 1]).with_padding([2, 2, 0]),
+        ];
+        for (gi, g) in geoms.iter().enumerate() {
+            for (si, sorted) in [true, false].into_iter().enumerate() {
+                let set = random_set(7 + gi as u64 * 2 + si as u64, [12, 9, 6], 2, 300, sorted);
+                let shape = g.regular_output_shape(set.spatial_shape()).unwrap();
+                let (od, md) = build_regular_dense(&set, g, shape).expect("dense path");
+                let (oh, mh) = build_regular_hashed(&set, g, shape);
+                assert_eq!(od, oh, "geometry {gi}, sorted {sorted}");
+                assert_eq!(
+                    all_pairs(&md),
+                    all_pairs(&mh),
+                    "geometry {gi}, sorted {sorted}"
+                );
+                assert!(od.windows(2).all(|w| pack(w[0]) < pack(w[1])));
+            }
+        }
+    }
+
+    #[test]
+    fn dense_table_only_for_well_filled_grids() {
+        assert!(DenseRows::empty(1, [64, 64, 8], 32_768 / DENSE_VOXELS_PER_SITE).is_some());
+        assert!(DenseRows::empty(1, [64, 64, 8], 32_768 / DENSE_VOXELS_PER_SITE - 1).is_none());
+        assert!(DenseRows::empty(1, [64, 64, 8], 0).is_none());
+        assert!(DenseRows::empty(usize::MAX, [64, 64, 8], 1).is_none());
+        // Submanifold through the table equals submanifold through the hash.
+        let set = random_set(3, [10, 10, 4], 1, 150, false);
+        let g = ConvGeometry::new([3, 3, 3]);
+        let half = |o: Coord, k: [usize; 3]| {
+            Some([
+                o[0],
+                o[1] - 1 + k[0] as i32,
+                o[2] - 1 + k[1] as i32,
+                o[3] - 1 + k[2] as i32,
+            ])
+        };
+        let t = DenseRows::of_set(&set).expect("dense");
+        let a = build_pairs_with(set.len(), set.coords(), &g, half, |c| t.get(c));
+        let b = build_pairs_with(set.len(), set.coords(), &g, half, |c| {
+            set.find(c).map(|r| r as u32)
+        });
+        assert_eq!(all_pairs(&a), all_pairs(&b));
+        assert!(a.num_pairs() > set.len());
+    }
 }

@@ -22,7 +22,7 @@ pub mod tensor;
 
 pub use backend::SparseConvBackend;
 pub use conv::{ConvKind, SparseConv3d, SparseConv3dConfig};
-pub use coords::{Coord, CoordSet};
+pub use coords::{full_grid_coords, Coord, CoordSet};
 pub use error::{Result, SparseError};
 pub use kernel_map::{ConvGeometry, KernelMap, KernelMapKey, MapKind};
 pub use pool::{SparseMaxPool3d, SparseMaxPool3dConfig};

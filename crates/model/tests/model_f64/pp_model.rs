@@ -8,7 +8,7 @@ use burn::prelude::*;
 use burn::tensor::TensorData;
 use occ_model::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
 use occ_model::scf_head::{ScfDecomposition, ScfLearning};
-use occ_model::sparseocc_pp::{PPOutput, SparseOccPP, SparseOccPPConfig};
+use occ_model::sparseocc_pp::{OutputResolution, PPOutput, SparseOccPP, SparseOccPPConfig};
 use pp_common::*;
 
 fn tiny_config() -> SparseOccPPConfig {
@@ -143,6 +143,55 @@ fn ablations_run_and_train() {
         let grads = sum_all(&out).backward();
         assert_all_grads(&model, &grads);
     }
+}
+
+#[test]
+fn subvoxel_output_predicts_the_children_at_full_resolution() {
+    let half = tiny_config();
+    let full = tiny_config().with_output(OutputResolution::SubVoxel);
+    let (_, h) = run::<NB>(&half, 2, 7);
+    let (model, out) = run::<AD>(&full, 2, 7);
+    assert_eq!(out.out.upsample, 1);
+    assert_eq!(out.out.out_dims, FULL_DIMS);
+    let parents = h.out.coords.len();
+    let stat = |k: &str| out.out.stats.iter().find(|(n, _)| n == k).map(|s| s.1);
+    let n_final = stat("final").expect("final stat");
+    assert_eq!(out.out.coords.len(), 8 * n_final);
+    assert_eq!(stat("final_full_res"), Some(8 * n_final));
+    assert_eq!(out.out.logits.dims(), [8 * n_final, 6]);
+    assert!(parents > 0 && n_final > 0);
+    // Rows 8i..8i+8 are the children of one 1/2-res voxel, in split order 4dx + 2dy + dz, and all
+    // of them lie inside the full grid.
+    for (i, ch) in out.out.coords.chunks(8).enumerate() {
+        let p = [ch[0][0], ch[0][1] / 2, ch[0][2] / 2, ch[0][3] / 2];
+        for (j, c) in ch.iter().enumerate() {
+            let (dx, dy, dz) = ((j >> 2) & 1, (j >> 1) & 1, j & 1);
+            assert_eq!(
+                *c,
+                [
+                    p[0],
+                    2 * p[1] + dx as i32,
+                    2 * p[2] + dy as i32,
+                    2 * p[3] + dz as i32
+                ],
+                "row {i}"
+            );
+            assert!((0..3).all(|a| (c[a + 1] as usize) < FULL_DIMS[a]));
+        }
+    }
+    // The loss is taken at full resolution: the final labels are the full-resolution labels.
+    let device = Default::default();
+    let batch = batch::<AD>(2, 7, &device);
+    let t = occ_model::sparseocc_pp::pp_targets(&out, &batch, &full).expect("targets");
+    let target = batch.target.as_ref().unwrap();
+    for (c, &l) in out.out.coords.iter().zip(&t.labels) {
+        let [b, x, y, z] = c.map(|v| v as usize);
+        assert_eq!(l, target[b][(x * FULL_DIMS[1] + y) * FULL_DIMS[2] + z]);
+    }
+    let losses = out.losses(&batch, &full, &[1.0; 6]).expect("losses");
+    assert!(losses.iter().any(|(n, _)| n == "occ.ce"));
+    let grads = sum_all(&out).backward();
+    assert_all_grads(&model, &grads);
 }
 
 /// Literal Algorithm 1 on a dense grid: for each s_j, max-pool (dilate) the anchors with s = -s_j by

@@ -713,3 +713,58 @@ fn weighted_cross_entropy_matches_formula() {
     let e = (2.0 * nll(&logits[0..3], 1) + 1.5 * nll(&logits[6..9], 2)) / 3.5;
     assert!((got - e).abs() < 1e-12);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Dense baseline
+
+/// The dense baseline's encoder layer (a submanifold convolution over a grid whose every voxel is
+/// active) equals burn's dense `conv3d` with zero padding 1, forward and input gradient.
+#[test]
+fn dense_baseline_conv_is_a_dense_conv3d() {
+    use burn::tensor::module::conv3d;
+    use burn::tensor::ops::ConvOptions;
+    use occ_model::dense_baseline::dense_conv_config;
+    use occ_sparse::full_grid_coords;
+    let device = Default::default();
+    let mut r = rng(31);
+    let (b, cin, cout, dims) = (2usize, 3usize, 4usize, [5usize, 4, 3]);
+    let n = b * dims.iter().product::<usize>();
+    let x0 = random_tensor::<B64, 5>(&mut r, [b, cin, dims[0], dims[1], dims[2]]);
+    let (x, xd) = (
+        x0.clone().detach().require_grad(),
+        x0.detach().require_grad(),
+    );
+    let layer = dense_conv_config(cin, cout).init::<B64>(&device);
+    // Sparse path, as in DenseBaseline::forward.
+    let feats = x.clone().permute([0, 2, 3, 4, 1]).reshape([n, cin]);
+    let t = SparseTensor::new(full_grid_coords(b, dims), feats, dims, b).unwrap();
+    let y = layer.forward(t).unwrap().into_feats();
+    // Dense reference: weight [Cout, kx, ky, kz, Cin] -> [Cout, Cin, kx, ky, kz].
+    let w = layer.weight.val().permute([0, 4, 1, 2, 3]);
+    let y_ref = conv3d(
+        xd.clone(),
+        w,
+        None,
+        ConvOptions::new([1, 1, 1], [1, 1, 1], [1, 1, 1], 1),
+    )
+    .permute([0, 2, 3, 4, 1])
+    .reshape([n, cout]);
+    let (a, e) = (to_vec_f64(y.clone()), to_vec_f64(y_ref.clone()));
+    let err = a
+        .iter()
+        .zip(&e)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0, f64::max);
+    assert!(err < 1e-10, "forward max error {err}");
+    // Input gradients of a random linear functional.
+    let g = random_tensor::<B64, 2>(&mut r, [n, cout]);
+    let ga = x.grad(&(y * g.clone()).sum().backward()).unwrap();
+    let gb = xd.grad(&(y_ref * g).sum().backward()).unwrap();
+    let (a, e) = (to_vec_f64(ga), to_vec_f64(gb));
+    let err = a
+        .iter()
+        .zip(&e)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0, f64::max);
+    assert!(err < 1e-10, "input-gradient max error {err}");
+}
