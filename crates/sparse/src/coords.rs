@@ -238,16 +238,13 @@ impl CoordSet {
         batch_size: usize,
         tensor_stride: [usize; 3],
     ) -> Self {
-        Self {
+        Self::with_index(
             coords,
-            index: std::sync::OnceLock::from(index),
+            std::sync::OnceLock::from(index),
             spatial_shape,
             batch_size,
             tensor_stride,
-            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
-            cache: Mutex::new(HashMap::new()),
-            parents: Mutex::new(Vec::new()),
-        }
+        )
     }
 
     /// Builds a set from valid unique coordinates; the hash index is built on first use.
@@ -257,9 +254,25 @@ impl CoordSet {
         batch_size: usize,
         tensor_stride: [usize; 3],
     ) -> Self {
+        Self::with_index(
+            coords,
+            std::sync::OnceLock::new(),
+            spatial_shape,
+            batch_size,
+            tensor_stride,
+        )
+    }
+
+    fn with_index(
+        coords: Vec<Coord>,
+        index: std::sync::OnceLock<CoordIndex>,
+        spatial_shape: [usize; 3],
+        batch_size: usize,
+        tensor_stride: [usize; 3],
+    ) -> Self {
         Self {
             coords,
-            index: std::sync::OnceLock::new(),
+            index,
             spatial_shape,
             batch_size,
             tensor_stride,

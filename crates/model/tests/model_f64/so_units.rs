@@ -749,22 +749,19 @@ fn dense_baseline_conv_is_a_dense_conv3d() {
     )
     .permute([0, 2, 3, 4, 1])
     .reshape([n, cout]);
-    let (a, e) = (to_vec_f64(y.clone()), to_vec_f64(y_ref.clone()));
-    let err = a
-        .iter()
-        .zip(&e)
-        .map(|(p, q)| (p - q).abs())
-        .fold(0.0, f64::max);
+    let max_err = |a: Vec<f64>, e: Vec<f64>| {
+        assert_eq!(a.len(), e.len());
+        a.iter()
+            .zip(&e)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0, f64::max)
+    };
+    let err = max_err(to_vec_f64(y.clone()), to_vec_f64(y_ref.clone()));
     assert!(err < 1e-10, "forward max error {err}");
     // Input gradients of a random linear functional.
     let g = random_tensor::<B64, 2>(&mut r, [n, cout]);
     let ga = x.grad(&(y * g.clone()).sum().backward()).unwrap();
     let gb = xd.grad(&(y_ref * g).sum().backward()).unwrap();
-    let (a, e) = (to_vec_f64(ga), to_vec_f64(gb));
-    let err = a
-        .iter()
-        .zip(&e)
-        .map(|(p, q)| (p - q).abs())
-        .fold(0.0, f64::max);
+    let err = max_err(to_vec_f64(ga), to_vec_f64(gb));
     assert!(err < 1e-10, "input-gradient max error {err}");
 }
