@@ -175,38 +175,25 @@ fn train_resume_infer_eval_and_bad_input() {
     assert!(single.join("000000.label").exists() && single.join("000000.png").exists());
 
     // Bad input: clear errors, no panics.
-    let e = fails(&[
-        "train",
-        "--config",
-        p(&root.join("nope.toml")),
-        "--data",
-        p(&data),
-        "--out",
-        p(&root.join("r2")),
-    ]);
+    let train_fails = |config: &Path, out: &str| {
+        fails(&[
+            "train",
+            "--config",
+            p(config),
+            "--data",
+            p(&data),
+            "--out",
+            p(&root.join(out)),
+        ])
+    };
+    let e = train_fails(&root.join("nope.toml"), "r2");
     assert!(e.contains("nope.toml"), "{e}");
     let bad = root.join("bad.toml");
     std::fs::write(&bad, TINY.replace("depth = 18", "depth = 19")).unwrap();
-    let e = fails(&[
-        "train",
-        "--config",
-        p(&bad),
-        "--data",
-        p(&data),
-        "--out",
-        p(&root.join("r3")),
-    ]);
+    let e = train_fails(&bad, "r3");
     assert!(e.contains("bad.toml") && e.contains("19"), "{e}");
     std::fs::write(&bad, TINY.replace("[train]", "[train]\nlearning_rate = 1")).unwrap();
-    let e = fails(&[
-        "train",
-        "--config",
-        p(&bad),
-        "--data",
-        p(&data),
-        "--out",
-        p(&root.join("r4")),
-    ]);
+    let e = train_fails(&bad, "r4");
     assert!(e.contains("learning_rate"), "{e}");
     // A checkpoint whose config no longer matches its weights.
     let mism = root.join("mismatch");
