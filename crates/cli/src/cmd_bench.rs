@@ -14,7 +14,7 @@ use crate::backend::{self, Infer};
 use anyhow::{bail, Context, Result};
 use occ_data::synthetic::{self, Preset, SynthConfig};
 use occ_model::{ModelKind, OccNet};
-use occ_train::dataset::{collate, KittiDataset};
+use occ_train::dataset::{collate, Dataset, DatasetFormat};
 use occ_train::RunConfig;
 use occ_viz::plot::{line_plot, PlotSpec, Series};
 use serde::{Deserialize, Serialize};
@@ -142,7 +142,21 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
-fn preset_for(dims: [usize; 3]) -> Result<Preset> {
+/// The synthetic preset whose frame feeds the bench: the KITTI presets for the SemanticKITTI layout
+/// (by grid), the six-camera `surround` preset for the nuScenes layouts (its cameras and images;
+/// the grid is the config's: Occ3D's 200x200x16 in the ego frame or nuScenes-Occupancy's
+/// 512x512x40 in the LiDAR frame).
+fn preset_for(format: DatasetFormat, dims: [usize; 3]) -> Result<Preset> {
+    if format != DatasetFormat::SemanticKitti {
+        let g = format.default_grid();
+        anyhow::ensure!(
+            g.dims == dims,
+            "model.full_dims {dims:?} is not the {} grid {:?}",
+            format.name(),
+            g.dims
+        );
+        return Ok(Preset::Surround);
+    }
     for p in [Preset::Kitti, Preset::KittiSmall] {
         if p.grid().dims == dims {
             return Ok(p);
@@ -160,7 +174,11 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
     cfg.model.kind = ModelKind::parse(name)?;
     let data = args.data.as_ref().context("--single needs --data")?;
     let base_rss = status_kib("VmRSS:").unwrap_or(0.0) / 1024.0;
-    let ds = KittiDataset::open(data, &["00".to_string()], cfg.data.pipeline())?;
+    let seq = match cfg.data.format {
+        DatasetFormat::SemanticKitti => "00",
+        _ => "*",
+    };
+    let ds = Dataset::open(data, &cfg.data, &[seq.to_string()], &[])?;
     let div = args.grid_divisor.max(1);
     let grid = ds.grid().downsampled(div);
     cfg.model.full_dims = grid.dims;
@@ -283,7 +301,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         return Ok(());
     }
     let cfg = RunConfig::load(&args.config)?;
-    let preset = preset_for(cfg.model.full_dims)?;
+    let preset = preset_for(cfg.data.format, cfg.model.full_dims)?;
     let tmp = std::env::temp_dir().join(format!("sparseocc-bench-{}", std::process::id()));
     let synth = SynthConfig::new(preset, 7, vec![("00".to_string(), 1)]);
     synthetic::generate(&tmp, &synth, &mut |_, _| {})?;

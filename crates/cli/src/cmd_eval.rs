@@ -2,13 +2,17 @@
 
 use crate::progress;
 use anyhow::{Context, Result};
-use occ_eval::{format_table, score_occ3d_folder, score_semantic_kitti_folder, FolderOptions};
+use occ_eval::{
+    format_table, score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
+    FolderOptions,
+};
 use std::path::PathBuf;
 
 /// Arguments of `sparseocc eval`.
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
-    /// semantickitti or occ3d.
+    /// semantickitti (also kitti), occ3d, or nuscenes-occupancy (also nuscenes; OpenOccupancy
+    /// layout scene_<scene_token>/occupancy/<lidar_token>.npy in both --gt and --pred).
     #[arg(long, default_value = "semantickitti")]
     pub dataset: String,
     /// Ground-truth dataset root (SemanticKITTI: the folder containing sequences/).
@@ -40,7 +44,12 @@ pub fn run(args: &EvalArgs) -> Result<occ_eval::EvalReport> {
     let report = match args.dataset.as_str() {
         "semantickitti" | "kitti" => score_semantic_kitti_folder(&args.gt, &args.pred, &opts),
         "occ3d" => score_occ3d_folder(&args.gt, &args.pred, &opts),
-        other => anyhow::bail!("eval: unknown dataset '{other}' (semantickitti, occ3d)"),
+        "nuscenes-occupancy" | "nuscenes" => {
+            score_nuscenes_occupancy_folder(&args.gt, &args.pred, &opts)
+        }
+        other => anyhow::bail!(
+            "eval: unknown dataset '{other}' (semantickitti, occ3d, nuscenes-occupancy)"
+        ),
     }
     .with_context(|| {
         format!(

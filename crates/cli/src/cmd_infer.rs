@@ -1,20 +1,22 @@
-//! `sparseocc infer`: a trained model (or random weights) on a dataset's sequences, writing the
-//! SemanticKITTI submission layout, or on any single camera image with its calibration.
+//! `sparseocc infer`: a trained model (or random weights) on a dataset's sequences (SemanticKITTI:
+//! the submission layout `sequences/XX/predictions/*.label`; Occ3D: `<scene>/<token>/labels.npz`;
+//! nuScenes-Occupancy: `scene_<token>/occupancy/<lidar token>.npy`), or on any single camera image
+//! with its calibration.
 //!
 //! - `--checkpoint RUN` (a training run folder, or its `checkpoint/`): config from `RUN/config.toml`.
 //! - `--config C --random-weights`: an untrained network (timing, smoke tests on real frames).
 
 use crate::backend::{self, Infer};
 use crate::cmd_viz::render_panel_set;
-use crate::labels_io::{read_kitti_label, LabelGrid};
+use crate::labels_io::{read_kitti_label, read_surround_labels, LabelGrid};
 use crate::progress;
 use anyhow::{bail, Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
-use occ_eval::{format_table, score_semantic_kitti_folder, FolderOptions};
+use occ_eval::format_table;
 use occ_geometry::VoxelGrid;
 use occ_model::OccNet;
-use occ_train::dataset::KittiDataset;
+use occ_train::dataset::{Dataset, DatasetFormat};
 use occ_train::infer::{load_single_image, predict_dataset, predict_sample};
 use occ_train::RunConfig;
 use occ_viz::Palette;
@@ -32,10 +34,12 @@ pub struct InferArgs {
     /// Use an untrained network built from --config (timing and smoke tests).
     #[arg(long)]
     pub random_weights: bool,
-    /// Dataset root (folder with sequences/), with --sequences.
+    /// Dataset root (SemanticKITTI: the folder with sequences/; nuScenes layouts: the folder with
+    /// samples/ and the v1.0-* tables), with --sequences.
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Sequences to predict (comma-separated).
+    /// Sequences (nuScenes layouts: scene names) to predict (comma-separated); default the
+    /// config's val_sequences.
     #[arg(long, value_delimiter = ',')]
     pub sequences: Option<Vec<String>>,
     /// A single camera image (PNG), with --calib.
@@ -44,7 +48,8 @@ pub struct InferArgs {
     /// KITTI-format calibration (P2 and Tr lines) of --image.
     #[arg(long)]
     pub calib: Option<PathBuf>,
-    /// Output folder: sequences/XX/predictions/*.label (or NAME.label for --image), renders/, summary.json.
+    /// Output folder: the predictions in the dataset's layout (or NAME.label for --image), renders/,
+    /// summary.json.
     #[arg(long)]
     pub out: PathBuf,
     /// Render this many frames (camera overlay | prediction | ground truth when labelled).
@@ -86,7 +91,18 @@ pub fn load_checkpoint(path: &Path) -> Result<(RunConfig, VoxelGrid, OccNet<Infe
     Ok((cfg, grid, model))
 }
 
-fn grid_for(dims: [usize; 3]) -> Result<VoxelGrid> {
+fn grid_for(format: DatasetFormat, dims: [usize; 3]) -> Result<VoxelGrid> {
+    if format != DatasetFormat::SemanticKitti {
+        let g = format.default_grid();
+        if g.dims == dims {
+            return Ok(g);
+        }
+        bail!(
+            "model.full_dims {dims:?} is not the {} grid {:?}; use a trained run (it stores its grid)",
+            format.name(),
+            g.dims
+        );
+    }
     for f in [1, 2, 4] {
         let g = VoxelGrid::semantic_kitti().downsampled(f);
         if g.dims == dims {
@@ -105,7 +121,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
         (Some(ck), None, false) => load_checkpoint(ck)?,
         (None, Some(c), true) => {
             let cfg = RunConfig::load(c)?;
-            let grid = grid_for(cfg.model.full_dims)?;
+            let grid = grid_for(cfg.data.format, cfg.model.full_dims)?;
             let model: OccNet<Infer> = cfg.model.init(&backend::device())?;
             (cfg, grid, model)
         }
@@ -129,7 +145,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
             if seqs.is_empty() {
                 bail!("--sequences is required (the config has no val_sequences)");
             }
-            let ds = KittiDataset::open(data, &seqs, cfg.data.pipeline())?;
+            let ds = Dataset::open(data, &cfg.data, &seqs, &[])?;
             if ds.grid().dims != grid.dims {
                 bail!(
                     "{}: dataset grid {:?} but the model predicts {:?}",
@@ -152,52 +168,18 @@ pub fn run(args: &InferArgs) -> Result<()> {
                 }
             })?;
             pb.finish_and_clear();
-            let paths = KittiPaths::new(data);
-            for (path, _) in written.iter().take(args.render) {
-                let stem = path
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default();
-                let seq = path
-                    .parent()
-                    .and_then(Path::parent)
-                    .and_then(Path::file_name)
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default();
-                let pred = read_kitti_label(path, grid)?;
-                let gt_p = paths.voxels(&seq, &stem, "label");
-                let gt = gt_p
-                    .exists()
-                    .then(|| read_kitti_label(&gt_p, grid))
-                    .transpose()?;
-                let out = args.out.join("renders").join(format!("{seq}_{stem}.png"));
-                render_panel_set(
-                    gt.as_ref(),
-                    Some(&pred),
-                    Some((&paths.image_2(&seq, &stem), &paths.calib(&seq))),
-                    &out,
-                    360,
-                )?;
+            for (i, (path, _)) in written.iter().enumerate().take(args.render) {
+                let out = render_frame(&ds, data, i, path, grid, &args.out)?;
                 eprintln!("wrote {}", out.display());
             }
-            let labelled = seqs.iter().all(|s| {
-                let d = data.join("sequences").join(s).join("voxels");
-                sk::list_stems(&d, "label").is_ok_and(|v| !v.is_empty())
-            });
-            if labelled {
-                let r = score_semantic_kitti_folder(
-                    data,
-                    &args.out,
-                    &FolderOptions {
-                        sequences: Some(&seqs),
-                        ..Default::default()
-                    },
-                )?;
+            if ds.is_labelled()? {
+                let r = ds.score(&args.out)?;
                 println!("{}", format_table(&r));
                 summary["iou"] = serde_json::json!(r.iou);
                 summary["miou"] = serde_json::json!(r.miou);
                 summary["per_class"] = serde_json::json!(r.per_class);
             }
+            summary["dataset_format"] = serde_json::json!(ds.format().name());
             let mean = times.iter().sum::<f64>() / times.len().max(1) as f64;
             eprintln!(
                 "{} frames, {:.3} s per frame (forward pass, image decoding excluded), {}",
@@ -241,6 +223,54 @@ pub fn run(args: &InferArgs) -> Result<()> {
     }
     crate::util::write_json(&args.out.join("summary.json"), &summary)?;
     Ok(())
+}
+
+/// Renders frame `i` (prediction at `pred_path` | ground truth when labelled; with the camera
+/// overlay for SemanticKITTI) to `OUT/renders/<sequence>_<frame>.png`.
+fn render_frame(
+    ds: &Dataset,
+    data: &Path,
+    i: usize,
+    pred_path: &Path,
+    grid: VoxelGrid,
+    out_root: &Path,
+) -> Result<PathBuf> {
+    let f = &ds.frames()[i];
+    let out = out_root
+        .join("renders")
+        .join(format!("{}_{}.png", f.sequence, f.frame));
+    match ds {
+        Dataset::Kitti(_) => {
+            let paths = KittiPaths::new(data);
+            let pred = read_kitti_label(pred_path, grid)?;
+            let gt_p = paths.voxels(&f.sequence, &f.frame, "label");
+            let gt = gt_p
+                .exists()
+                .then(|| read_kitti_label(&gt_p, grid))
+                .transpose()?;
+            render_panel_set(
+                gt.as_ref(),
+                Some(&pred),
+                Some((
+                    &paths.image_2(&f.sequence, &f.frame),
+                    &paths.calib(&f.sequence),
+                )),
+                &out,
+                360,
+            )?;
+        }
+        Dataset::Surround(s) => {
+            let format: DatasetFormat = ds.format();
+            let pred = read_surround_labels(pred_path, format, grid)?;
+            let gt_p = s.gt_path(i)?;
+            let gt = gt_p
+                .exists()
+                .then(|| read_surround_labels(&gt_p, format, grid))
+                .transpose()?;
+            render_panel_set(gt.as_ref(), Some(&pred), None, &out, 360)?;
+        }
+    }
+    Ok(out)
 }
 
 fn console_is_tty() -> bool {

@@ -1,14 +1,15 @@
-//! `sparseocc train --config C --data DIR --out RUN [--resume]`: trains a model on a
-//! SemanticKITTI-layout dataset (real or synthetic), checkpointing under `RUN/checkpoint`, logging to
+//! `sparseocc train --config C --data DIR --out RUN [--resume]`: trains a model on a dataset in the
+//! config's layout (`data.format`: SemanticKITTI, Occ3D or nuScenes-Occupancy; real or synthetic),
+//! checkpointing under `RUN/checkpoint`, logging to
 //! `RUN/train_log.csv`, and (with validation sequences) scoring the held-out frames at the end.
 
 use crate::backend::{self, Infer, Train};
 use crate::progress;
 use anyhow::{bail, Context, Result};
 use burn::module::{AutodiffModule, Module};
-use occ_eval::{format_table, score_semantic_kitti_folder, EvalReport as Report, FolderOptions};
+use occ_eval::{format_table, EvalReport as Report};
 use occ_model::{ModelKind, OccNet};
-use occ_train::dataset::KittiDataset;
+use occ_train::dataset::Dataset;
 use occ_train::infer::predict_dataset;
 use occ_train::trainer::{train, TrainSummary};
 use occ_train::RunConfig;
@@ -20,7 +21,8 @@ pub struct TrainArgs {
     /// Run configuration (TOML; see configs/). Optional with --resume (RUN/config.toml is used).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Dataset root (the folder with sequences/).
+    /// Dataset root (SemanticKITTI: the folder with sequences/; nuScenes layouts: the folder with
+    /// samples/, the v1.0-* tables and the ground truth).
     #[arg(long)]
     pub data: PathBuf,
     /// Run folder (config.toml, checkpoint/, train_log.csv, summary.json).
@@ -108,9 +110,14 @@ pub fn run_with(
     validate: bool,
 ) -> Result<TrainOutcome> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut ds = KittiDataset::open(data, &cfg.data.train_sequences, cfg.data.pipeline())?;
+    let mut ds = Dataset::open(
+        data,
+        &cfg.data,
+        &cfg.data.train_sequences,
+        &cfg.data.val_sequences,
+    )?;
     // Depth supervision (SparseOcc, dense baseline) needs the LiDAR scans.
-    ds.load_points = cfg.model.kind != ModelKind::SparseOccPP;
+    ds.set_load_points(cfg.model.kind != ModelKind::SparseOccPP);
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",
@@ -205,7 +212,7 @@ pub fn validate_on(
     data: &Path,
     pred_root: &Path,
 ) -> Result<(Report, f64)> {
-    let ds = KittiDataset::open(data, &cfg.data.val_sequences, cfg.data.pipeline())?;
+    let ds = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
     let pb = progress::bar(ds.len() as u64, "predict");
     let written = predict_dataset(
         model,
@@ -219,14 +226,7 @@ pub fn validate_on(
     )?;
     pb.finish_and_clear();
     let spf = written.iter().map(|w| w.1).sum::<f64>() / written.len().max(1) as f64;
-    let report = score_semantic_kitti_folder(
-        data,
-        pred_root,
-        &FolderOptions {
-            sequences: Some(&cfg.data.val_sequences),
-            ..Default::default()
-        },
-    )?;
+    let report = ds.score(pred_root)?;
     println!("{}", format_table(&report));
     eprintln!(
         "validation ({}): IoU {:.3}, mIoU {:.3}, {:.3} s per frame",

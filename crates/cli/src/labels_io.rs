@@ -4,6 +4,7 @@ use anyhow::{bail, Context, Result};
 use occ_data::formats::{occ3d, semantic_kitti as sk};
 use occ_data::labels::LearningMap;
 use occ_geometry::VoxelGrid;
+use occ_train::dataset::DatasetFormat;
 use occ_viz::Palette;
 use std::path::Path;
 
@@ -50,6 +51,39 @@ pub fn read_kitti_label(path: &Path, grid: VoxelGrid) -> Result<LabelGrid> {
         classes: LearningMap::semantic_kitti().remap(&raw),
         grid,
         palette: Palette::SemanticKitti,
+        occupancy_only: false,
+    })
+}
+
+/// Reads a ground-truth or prediction file of a nuScenes-layout dataset on its grid: Occ3D
+/// `labels.npz` (`semantics`, 17 = free) or nuScenes-Occupancy sparse `.npy` (0 = empty).
+pub fn read_surround_labels(
+    path: &Path,
+    format: DatasetFormat,
+    grid: VoxelGrid,
+) -> Result<LabelGrid> {
+    let (classes, palette) = match format {
+        DatasetFormat::NuscenesOccupancy => (
+            occ_data::formats::nuscenes_occupancy::read_sparse_occupancy(path)?,
+            Palette::NuScenesOccupancy,
+        ),
+        _ => (
+            occ_eval::folder::read_occ3d_prediction(path, grid.dims)?,
+            Palette::Occ3d,
+        ),
+    };
+    anyhow::ensure!(
+        classes.len() == grid.num_voxels(),
+        "{}: {} voxels, the grid {:?} has {}",
+        path.display(),
+        classes.len(),
+        grid.dims,
+        grid.num_voxels()
+    );
+    Ok(LabelGrid {
+        classes,
+        grid,
+        palette,
         occupancy_only: false,
     })
 }

@@ -38,7 +38,7 @@ pub enum DataError {
     /// The content is well-formed but not what the format requires (dtype, shape, value range, ...).
     #[error("{}: {detail}", path.display())]
     Format { path: PathBuf, detail: String },
-    /// A PNG could not be decoded or encoded.
+    /// An image (PNG or JPEG) could not be decoded or encoded.
     #[error("{}: image error: {detail}", path.display())]
     Image { path: PathBuf, detail: String },
     /// An in-memory argument is inconsistent (no file involved), e.g. a grid of the wrong length.

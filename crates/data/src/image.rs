@@ -1,4 +1,4 @@
-//! RGB images (PNG) and the camera-image pipeline of SparseOcc/OccFormer (FACTS.md §1 "SO/OF
+//! RGB images (PNG, and baseline/progressive JPEG as nuScenes ships its camera images) and the camera-image pipeline of SparseOcc/OccFormer (FACTS.md §1 "SO/OF
 //! image pipeline"): resize, crop, flip, rotate in one resampling pass, ImageNet normalisation
 //! to CHW float32, and the matching post-augmentation matrix.
 
@@ -35,6 +35,46 @@ impl RgbImage {
         let o = (v * self.width + u) * 3;
         Some([self.data[o], self.data[o + 1], self.data[o + 2]])
     }
+}
+
+/// Read a camera image, PNG or JPEG (told apart by the file's magic bytes, not its name), as RGB8.
+/// A missing file gives [`DataError::NotFound`] naming it.
+pub fn read_image(path: &Path) -> Result<RgbImage, DataError> {
+    let bytes = read_bytes(path)?;
+    if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+        decode_jpeg(&bytes, path)
+    } else {
+        decode_png(&bytes, path)
+    }
+}
+
+/// Decode JPEG bytes (grey, YCbCr or CMYK) into RGB8 (`path` is used in error messages).
+pub fn decode_jpeg(bytes: &[u8], path: &Path) -> Result<RgbImage, DataError> {
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let err = |detail: String| DataError::Image {
+        path: path.to_path_buf(),
+        detail,
+    };
+    let opts = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB);
+    let mut dec = zune_jpeg::JpegDecoder::new_with_options(std::io::Cursor::new(bytes), opts);
+    let data = dec
+        .decode()
+        .map_err(|e| err(format!("not a decodable JPEG: {e:?}")))?;
+    let (width, height) = dec
+        .dimensions()
+        .ok_or_else(|| err("JPEG without a frame header".into()))?;
+    if data.len() != width * height * 3 {
+        return Err(err(format!(
+            "JPEG decoded to {} bytes, expected {width}x{height}x3",
+            data.len()
+        )));
+    }
+    Ok(RgbImage {
+        width,
+        height,
+        data,
+    })
 }
 
 /// Decode a PNG (8/16-bit, grey, grey+alpha, RGB, RGBA or palette) into RGB8.

@@ -26,11 +26,24 @@
 //!   floats; values outside 0..=17 are invalid predictions); other keys are ignored;
 //! - voxels evaluated: `mask_camera != 0` by default (the challenge setting), or
 //!   `mask_lidar` / all voxels via [`Occ3dMask`].
+//!
+//! # nuScenes-Occupancy / OpenOccupancy (`sparseocc eval --dataset nuscenes-occupancy`)
+//! - ground truth `GT/scene_<scene_token>/occupancy/<lidar_token>.npy` (`GT` may also be the
+//!   parent of a `nuScenes-Occupancy/` folder holding those): the sparse `N x 4` `[z, y, x, cls]`
+//!   (or `N x 7` `[z, y, x, vx, vy, vz, cls]`) array of the occupied voxels of the 512×512×40 grid,
+//!   read into the dense training grid ([`read_sparse_occupancy`]: unlisted voxels 0 = empty, raw
+//!   1..16 unchanged, raw 0 noise -> 255); the frames are **every** such `.npy`;
+//! - prediction of a frame: `PRED/scene_<scene_token>/occupancy/<lidar_token>.npy` in the same
+//!   sparse format (e.g. written by `write_sparse_occupancy`); every prediction must exist;
+//! - every voxel is evaluated except ground-truth noise (255, ignored as in OpenOccupancy);
+//!   predicted noise (raw 0 -> 255) is an invalid prediction, scored as empty (see
+//!   [`crate::protocol`]).
 
 use crate::error::EvalError;
 use crate::protocol::{EvalMask, Evaluator, Protocol};
 use crate::report::EvalReport;
 use occ_data::formats::npy::{parse_npy, NpyValues};
+use occ_data::formats::nuscenes_occupancy::read_sparse_occupancy;
 use occ_data::formats::occ3d::read_labels_npz;
 use occ_data::formats::semantic_kitti::{
     list_sequences, list_stems, read_label_raw, read_packed_bits, KittiPaths, LearningMap,
@@ -301,5 +314,67 @@ pub fn score_occ3d_folder(
             Occ3dMask::None => EvalMask::All,
         };
         ev.add_frame(&pred, &gt.semantics, mask, &job.name)
+    })
+}
+
+/// The sorted sub-folders of `dir` whose names start with `prefix`.
+fn list_dirs_with_prefix(dir: &Path, prefix: &str) -> Result<Vec<String>, EvalError> {
+    let rd = std::fs::read_dir(dir).map_err(|source| EvalError::Io {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let mut out = Vec::new();
+    for entry in rd {
+        let entry = entry.map_err(|source| EvalError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        if let Some(name) = entry.file_name().to_str() {
+            if name.starts_with(prefix) && entry.path().is_dir() {
+                out.push(name.to_string());
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// Score nuScenes-Occupancy (OpenOccupancy) prediction folders (see the module docs for layout
+/// and rules).
+pub fn score_nuscenes_occupancy_folder(
+    gt_root: &Path,
+    pred_root: &Path,
+    opts: &FolderOptions<'_>,
+) -> Result<EvalReport, EvalError> {
+    let nested = gt_root.join("nuScenes-Occupancy");
+    let base = if nested.is_dir() {
+        nested
+    } else {
+        gt_root.to_path_buf()
+    };
+    let mut jobs = Vec::new();
+    for scene in list_dirs_with_prefix(&base, "scene_")? {
+        let occ_dir = base.join(&scene).join("occupancy");
+        for token in list_stems(&occ_dir, "npy")? {
+            let file = format!("{token}.npy");
+            jobs.push(Job {
+                name: format!("{scene}/{token}"),
+                gt: occ_dir.join(&file),
+                extra: None,
+                pred: pred_root.join(&scene).join("occupancy").join(&file),
+            });
+        }
+    }
+    if jobs.is_empty() {
+        return Err(EvalError::NoFrames {
+            root: base,
+            what: "no scene_<scene_token>/occupancy/<lidar_token>.npy".into(),
+        });
+    }
+    check_predictions(&jobs)?;
+    run_jobs(Protocol::NuScenesOccupancy, &jobs, opts, |job, ev| {
+        let gt = read_sparse_occupancy(&job.gt)?;
+        let pred = read_sparse_occupancy(&job.pred)?;
+        ev.add_frame(&pred, &gt, EvalMask::All, &job.name)
     })
 }

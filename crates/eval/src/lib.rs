@@ -17,6 +17,9 @@ pub mod report;
 
 pub use confusion::ConfusionMatrix;
 pub use error::EvalError;
-pub use folder::{score_occ3d_folder, score_semantic_kitti_folder, FolderOptions, Occ3dMask};
+pub use folder::{
+    score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
+    FolderOptions, Occ3dMask,
+};
 pub use protocol::{EvalMask, Evaluator, Protocol};
 pub use report::{format_table, EvalReport, PerClass};

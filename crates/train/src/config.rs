@@ -1,6 +1,7 @@
 //! Run configuration files (`configs/*.toml`): `[model]` ([`OccNetConfig`]), `[train]`
 //! ([`TrainConfig`]) and `[data]` ([`DataConfig`]).
 
+use crate::dataset::DatasetFormat;
 use crate::trainer::TrainConfig;
 use crate::TrainError;
 use occ_data::image::ImagePipelineConfig;
@@ -12,14 +13,28 @@ use std::path::Path;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DataConfig {
+    /// Dataset layout: `semantic_kitti` (default; one front camera), `occ3d` (Occ3D-nuScenes
+    /// `gts/` + nuScenes tables and six cameras) or `nuscenes_occupancy` (OpenOccupancy GT +
+    /// nuScenes tables and six cameras).
+    #[serde(default)]
+    pub format: DatasetFormat,
+    /// Ground-truth folder below the data root (default `gts` for Occ3D, `nuScenes-Occupancy` for
+    /// nuScenes-Occupancy; unused for SemanticKITTI).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gt_dir: Option<String>,
+    /// nuScenes table folder below the data root (default: the synthetic data's, else the first
+    /// of `v1.0-trainval`, `v1.0-mini`, `v1.0-test` that exists).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nuscenes_version: Option<String>,
     /// Network input width (SemanticKITTI: 1280).
     pub image_width: usize,
     /// Network input height (SemanticKITTI: 384).
     pub image_height: usize,
-    /// Training sequences (SemanticKITTI: 00-07, 09, 10).
+    /// Training sequences (SemanticKITTI: 00-07, 09, 10), or scene names for the nuScenes layouts,
+    /// where `"*"` stands for every scene not listed in `val_sequences`.
     #[serde(default)]
     pub train_sequences: Vec<String>,
-    /// Validation sequences (SemanticKITTI: 08).
+    /// Validation sequences (SemanticKITTI: 08), or nuScenes scene names.
     #[serde(default)]
     pub val_sequences: Vec<String>,
     /// Training augmentation: resize offset range added to `image_width / W`.
@@ -188,6 +203,14 @@ impl RunConfig {
     /// Checks sizes (model, and the image size against the encoder strides).
     pub fn validate(&self) -> Result<(), String> {
         self.model.validate().map_err(|e| e.to_string())?;
+        let classes = self.data.format.num_classes();
+        if self.model.num_classes != classes {
+            return Err(format!(
+                "model.num_classes is {} but data.format `{}` has {classes} training classes (0 = empty)",
+                self.model.num_classes,
+                self.data.format.name()
+            ));
+        }
         if self.data.image_width < 32 || self.data.image_height < 32 {
             return Err(format!(
                 "data: image {}x{} is too small (at least 32x32)",

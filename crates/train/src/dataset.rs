@@ -1,20 +1,80 @@
-//! SemanticKITTI-layout frames (real or synthetic) to model batches.
+//! Dataset frames (real or synthetic) to model batches, for the three layouts of [`DatasetFormat`].
 //!
-//! A frame is `image_2/NNNNNN.png` + `calib.txt` (+ `voxels/NNNNNN.label` and `.invalid` for targets,
-//! `velodyne/NNNNNN.bin` for depth supervision). Images go through the FACTS.md §1 pipeline (random
-//! resize/crop/flip/rotate when training, resize + bottom crop at test time), and the augmentation is
-//! folded into each camera's `img_from_lidar`.
+//! - SemanticKITTI ([`KittiDataset`]): a frame is `image_2/NNNNNN.png` + `calib.txt` (+
+//!   `voxels/NNNNNN.label` and `.invalid` for targets, `velodyne/NNNNNN.bin` for depth supervision).
+//! - nuScenes surround layouts ([`SurroundDataset`]): a frame is a key-frame sample of the nuScenes
+//!   v1.0 tables with its six cameras (`samples/CAM_*/…`, JPEG or PNG) and `LIDAR_TOP` sweep; targets
+//!   from Occ3D (`gts/<scene name>/<sample token>/labels.npz`, grid in the ego frame at the LiDAR
+//!   time) or nuScenes-Occupancy (`nuScenes-Occupancy/scene_<scene token>/occupancy/<lidar token>.npy`,
+//!   grid in the LiDAR frame).
+//!
+//! Images go through the FACTS.md §1 pipeline (random resize/crop/flip/rotate when training, drawn
+//! per camera; resize + bottom crop at test time, which for 1600x900 nuScenes images at 704x256 is
+//! BEVDet's crop), and the augmentation is folded into each camera's `img_from_lidar`, where "lidar"
+//! is always the frame of the label grid.
+//!
+//! Training class ids always have 0 = empty: SemanticKITTI's learning map; Occ3D free (17) -> 0 and
+//! class `c` (0..=16) -> `c + 1`, voxels outside `mask_camera` -> 255 (ignored); nuScenes-Occupancy
+//! as its reader gives them (noise -> 255).
 
 use crate::error::TrainError;
 use burn::prelude::*;
 use burn::tensor::TensorData;
+use occ_data::formats::nuscenes_occupancy::{self as nocc, NuscenesTables, SampleCameras};
+use occ_data::formats::occ3d::{self, Occ3dLabels};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
-use occ_data::image::{process_image, read_png, ImagePipelineConfig};
+use occ_data::image::{process_image, read_image, ImagePipelineConfig};
 use occ_data::labels::LearningMap;
-use occ_geometry::VoxelGrid;
+use occ_eval::{EvalMask, EvalReport, Evaluator, FolderOptions, Protocol};
+use occ_geometry::{transform_point, CameraView, Mat4, VoxelGrid};
 use occ_model::{Batch, CameraInput};
 use rand::Rng;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+/// Dataset layout (the config's `data.format`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DatasetFormat {
+    /// SemanticKITTI (`sequences/XX/`), one front camera.
+    #[default]
+    SemanticKitti,
+    /// Occ3D-nuScenes: nuScenes tables, six cameras, `gts/<scene>/<token>/labels.npz`.
+    Occ3d,
+    /// nuScenes-Occupancy (OpenOccupancy): nuScenes tables, six cameras, sparse `.npy` GT.
+    NuscenesOccupancy,
+}
+
+impl DatasetFormat {
+    /// The official evaluation protocol of this layout.
+    pub fn protocol(self) -> Protocol {
+        match self {
+            DatasetFormat::SemanticKitti => Protocol::SemanticKitti,
+            DatasetFormat::Occ3d => Protocol::Occ3d,
+            DatasetFormat::NuscenesOccupancy => Protocol::NuScenesOccupancy,
+        }
+    }
+    /// Training classes including empty (class 0): 20, 18 or 17.
+    pub fn num_classes(self) -> usize {
+        self.protocol().num_classes()
+    }
+    /// The label grid of the real dataset.
+    pub fn default_grid(self) -> VoxelGrid {
+        match self {
+            DatasetFormat::SemanticKitti => VoxelGrid::semantic_kitti(),
+            DatasetFormat::Occ3d => VoxelGrid::occ3d_nuscenes(),
+            DatasetFormat::NuscenesOccupancy => VoxelGrid::nuscenes_occupancy(),
+        }
+    }
+    /// The config name.
+    pub fn name(self) -> &'static str {
+        match self {
+            DatasetFormat::SemanticKitti => "semantic_kitti",
+            DatasetFormat::Occ3d => "occ3d",
+            DatasetFormat::NuscenesOccupancy => "nuscenes_occupancy",
+        }
+    }
+}
 
 /// One frame reference.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -30,15 +90,16 @@ pub struct FrameRef {
 pub struct Sample {
     /// Which frame.
     pub frame: FrameRef,
-    /// Normalised CHW image.
+    /// Normalised images, one CHW block per camera (`[V, 3, H, W]` flat).
     pub chw: Vec<f32>,
-    /// Network input size (width, height).
+    /// Network input size (width, height) of every camera.
     pub size: (usize, usize),
-    /// Camera geometry with the augmentation folded in.
-    pub camera: CameraInput,
-    /// Full-resolution class targets (0..19, 255 ignore; `.invalid` voxels are 255), if labelled.
+    /// Camera geometry per view, with the augmentation folded in (`img_from_lidar` maps the label
+    /// grid's frame to pixels).
+    pub cameras: Vec<CameraInput>,
+    /// Full-resolution training class targets (0 = empty, 255 ignore), if labelled.
     pub target: Option<Vec<u8>>,
-    /// LiDAR points in the LiDAR frame (metres), if available.
+    /// LiDAR points in the label grid's frame (metres), if available.
     pub points: Option<Vec<[f32; 3]>>,
 }
 
@@ -134,7 +195,7 @@ impl KittiDataset {
             .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?
             .clone();
         let img_path = self.paths.image_2(&f.sequence, &f.frame);
-        let img = read_png(&img_path)?;
+        let img = read_image(&img_path)?;
         let calib = sk::read_calib(&self.paths.calib(&f.sequence))?;
         let aug = match rng {
             Some(r) => self.pipeline.sample_train_aug(img.width, img.height, r),
@@ -142,10 +203,7 @@ impl KittiDataset {
         };
         let processed = process_image(&img, &aug)?;
         let view = calib.camera_view(img.width, img.height).augmented(&aug);
-        let camera = CameraInput {
-            img_from_lidar: view.img_from_lidar(),
-            cam_from_lidar: view.cam_from_lidar,
-        };
+        let camera = camera_input(&view);
         let n = self.grid.num_voxels();
         let label_p = self.paths.voxels(&f.sequence, &f.frame, "label");
         let target = if label_p.exists() {
@@ -182,14 +240,507 @@ impl KittiDataset {
             frame: f,
             chw: processed.chw,
             size: (processed.width, processed.height),
-            camera,
+            cameras: vec![camera],
             target,
             points,
         })
     }
 }
 
-/// Stacks samples (one camera each) into a [`Batch`] on `device`.
+/// One key-frame sample of a nuScenes-layout dataset.
+#[derive(Clone, Debug)]
+struct SurroundFrame {
+    /// `sequence` = scene name, `frame` = sample token.
+    frame: FrameRef,
+}
+
+/// A nuScenes-layout dataset (six cameras) with Occ3D or nuScenes-Occupancy ground truth.
+#[derive(Clone, Debug)]
+pub struct SurroundDataset {
+    root: PathBuf,
+    format: DatasetFormat,
+    tables: std::sync::Arc<NuscenesTables>,
+    frames: Vec<SurroundFrame>,
+    refs: Vec<FrameRef>,
+    grid: VoxelGrid,
+    gt_root: PathBuf,
+    pipeline: ImagePipelineConfig,
+    /// Load LiDAR points (depth supervision).
+    pub load_points: bool,
+}
+
+impl SurroundDataset {
+    /// Opens `root` (the nuScenes root: `samples/`, the table folder, the ground-truth folder).
+    /// `scenes` are scene names (`scene-0103`); `"*"` adds every scene not in `exclude`, in table
+    /// order. Frames are the key-frame samples of those scenes, by timestamp.
+    pub fn open(
+        root: &Path,
+        format: DatasetFormat,
+        scenes: &[String],
+        exclude: &[String],
+        pipeline: ImagePipelineConfig,
+        gt_dir: Option<&str>,
+        version: Option<&str>,
+    ) -> Result<Self, TrainError> {
+        if format == DatasetFormat::SemanticKitti {
+            return Err(TrainError::Config(
+                "SurroundDataset: the semantic_kitti layout has no surround cameras".into(),
+            ));
+        }
+        let meta = occ_data::synthetic::read_synthetic_meta(root)?;
+        let version = match version {
+            Some(v) => v.to_string(),
+            None => match meta.as_ref().and_then(|m| m.nuscenes_version.clone()) {
+                Some(v) => v,
+                None => ["v1.0-trainval", "v1.0-mini", "v1.0-test"]
+                    .into_iter()
+                    .find(|v| root.join(v).join("sample.json").is_file())
+                    .ok_or_else(|| {
+                        TrainError::Data(format!(
+                            "{}: no nuScenes tables (v1.0-trainval/, v1.0-mini/ or v1.0-test/ with sample.json); \
+                             set data.nuscenes_version",
+                            root.display()
+                        ))
+                    })?
+                    .to_string(),
+            },
+        };
+        let table_dir = root.join(&version);
+        let tables = NuscenesTables::load(&table_dir)?;
+        let scene_rows = nocc::read_scenes(&table_dir)?;
+        let mut chosen: Vec<&nocc::SceneRow> = Vec::new();
+        for name in scenes {
+            if name == "*" {
+                for r in &scene_rows {
+                    if !exclude.contains(&r.name) && !chosen.iter().any(|c| c.token == r.token) {
+                        chosen.push(r);
+                    }
+                }
+            } else {
+                let r = scene_rows.iter().find(|r| &r.name == name).ok_or_else(|| {
+                    TrainError::Data(format!(
+                        "{}: no scene named `{name}` (the tables have {} scenes)",
+                        table_dir.join("scene.json").display(),
+                        scene_rows.len()
+                    ))
+                })?;
+                if !chosen.iter().any(|c| c.token == r.token) {
+                    chosen.push(r);
+                }
+            }
+        }
+        let mut frames = Vec::new();
+        for scene in &chosen {
+            let mut samples: Vec<_> = tables
+                .sample
+                .iter()
+                .filter(|s| s.scene_token == scene.token)
+                .collect();
+            samples.sort_by_key(|s| s.timestamp);
+            frames.extend(samples.into_iter().map(|s| SurroundFrame {
+                frame: FrameRef {
+                    sequence: scene.name.clone(),
+                    frame: s.token.clone(),
+                },
+            }));
+        }
+        if frames.is_empty() {
+            return Err(TrainError::Data(format!(
+                "{}: no key-frame samples in scenes {scenes:?}",
+                table_dir.display()
+            )));
+        }
+        let grid = match (&meta, format) {
+            (Some(m), DatasetFormat::Occ3d) => m.grid,
+            _ => format.default_grid(),
+        };
+        let gt_root = root.join(gt_dir.unwrap_or(match format {
+            DatasetFormat::NuscenesOccupancy => "nuScenes-Occupancy",
+            _ => "gts",
+        }));
+        let refs = frames.iter().map(|f| f.frame.clone()).collect();
+        Ok(Self {
+            root: root.to_path_buf(),
+            format,
+            tables: std::sync::Arc::new(tables),
+            frames,
+            refs,
+            grid,
+            gt_root,
+            pipeline,
+            load_points: false,
+        })
+    }
+
+    /// The key-frame LiDAR and cameras of frame `i`.
+    fn cameras_of(&self, i: usize) -> Result<(&SurroundFrame, SampleCameras), TrainError> {
+        let f = self
+            .frames
+            .get(i)
+            .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?;
+        Ok((f, self.tables.sample_cameras(&f.frame.frame)?))
+    }
+
+    /// Ground-truth file of frame `i` (it may not exist).
+    pub fn gt_path(&self, i: usize) -> Result<PathBuf, TrainError> {
+        let (f, cams) = self.cameras_of(i)?;
+        Ok(self.gt_path_of(f, &cams))
+    }
+
+    fn gt_path_of(&self, f: &SurroundFrame, cams: &SampleCameras) -> PathBuf {
+        match self.format {
+            DatasetFormat::NuscenesOccupancy => self.tables.occupancy_path(&self.gt_root, cams),
+            _ => self
+                .gt_root
+                .join(&f.frame.sequence)
+                .join(&f.frame.frame)
+                .join("labels.npz"),
+        }
+    }
+
+    /// `grid_from_lidar`: Occ3D grids live in the ego frame at the LiDAR time, nuScenes-Occupancy
+    /// grids in the LiDAR frame.
+    fn grid_from_lidar(&self, cams: &SampleCameras) -> Option<Mat4> {
+        (self.format == DatasetFormat::Occ3d).then_some(cams.ego_from_lidar)
+    }
+
+    /// Loads frame `i`; with `rng`, applies the training augmentation (drawn per camera).
+    pub fn load<R: Rng + ?Sized>(
+        &self,
+        i: usize,
+        mut rng: Option<&mut R>,
+    ) -> Result<Sample, TrainError> {
+        let (f, cams) = self.cameras_of(i)?;
+        let mut chw = Vec::new();
+        let mut cameras = Vec::with_capacity(cams.cameras.len());
+        let mut size = (0, 0);
+        for cam in &cams.cameras {
+            let path = self.root.join(&cam.filename);
+            let img = read_image(&path)?;
+            let (w, h) = (cam.view.camera.width, cam.view.camera.height);
+            if (img.width, img.height) != (w, h) {
+                return Err(TrainError::Data(format!(
+                    "{}: image is {}x{} but its sample_data ({}) says {w}x{h}",
+                    path.display(),
+                    img.width,
+                    img.height,
+                    cam.sample_data_token
+                )));
+            }
+            let aug = match rng.as_deref_mut() {
+                Some(r) => self.pipeline.sample_train_aug(img.width, img.height, r),
+                None => self.pipeline.test_aug(img.width, img.height),
+            };
+            let processed = process_image(&img, &aug)?;
+            let cam_from_grid = match self.format {
+                DatasetFormat::Occ3d => cam.cam_from_ego_lidar,
+                _ => cam.view.cam_from_lidar,
+            };
+            let view = CameraView::new(cam.view.camera, cam_from_grid).augmented(&aug);
+            cameras.push(camera_input(&view));
+            size = (processed.width, processed.height);
+            chw.extend_from_slice(&processed.chw);
+        }
+        let gt = self.gt_path_of(f, &cams);
+        let target = if gt.exists() {
+            Some(self.read_target(&gt)?)
+        } else {
+            None
+        };
+        let points = if self.load_points {
+            let p = self.root.join(&cams.lidar_filename);
+            if p.exists() {
+                let pts = nocc::read_lidar_pcd_bin(&p)?;
+                Some(match self.grid_from_lidar(&cams) {
+                    Some(m) => pts
+                        .iter()
+                        .map(|q| transform_point(&m, q.map(f64::from)).map(|v| v as f32))
+                        .collect(),
+                    None => pts,
+                })
+            } else {
+                None
+            }
+        } else {
+            None
+        };
+        Ok(Sample {
+            frame: f.frame.clone(),
+            chw,
+            size,
+            cameras,
+            target,
+            points,
+        })
+    }
+
+    /// Training targets from a ground-truth file (see the module docs for the class ids).
+    fn read_target(&self, path: &Path) -> Result<Vec<u8>, TrainError> {
+        let t = match self.format {
+            DatasetFormat::NuscenesOccupancy => nocc::read_sparse_occupancy(path)?,
+            _ => {
+                let l = occ3d::read_labels_npz(path)?;
+                if l.dims != self.grid.dims {
+                    return Err(TrainError::Data(format!(
+                        "{}: grid {:?}, the dataset's is {:?}",
+                        path.display(),
+                        l.dims,
+                        self.grid.dims
+                    )));
+                }
+                occ3d_training_labels(&l)
+            }
+        };
+        if t.len() != self.grid.num_voxels() {
+            return Err(TrainError::Data(format!(
+                "{}: {} voxels, the grid {:?} has {}",
+                path.display(),
+                t.len(),
+                self.grid.dims,
+                self.grid.num_voxels()
+            )));
+        }
+        Ok(t)
+    }
+}
+
+/// Occ3D labels to training ids: free (17) -> 0, class `c` -> `c + 1`, outside `mask_camera` -> 255.
+pub fn occ3d_training_labels(l: &Occ3dLabels) -> Vec<u8> {
+    l.semantics
+        .iter()
+        .zip(&l.mask_camera)
+        .map(|(&s, &m)| match (m, s) {
+            (0, _) => 255,
+            (_, occ3d::FREE) => 0,
+            (_, c) => c + 1,
+        })
+        .collect()
+}
+
+/// Training ids back to Occ3D classes: 0 -> free (17), `k` -> `k - 1` (255 stays invalid).
+pub fn occ3d_from_training(classes: &[u8]) -> Vec<u8> {
+    classes
+        .iter()
+        .map(|&k| match k {
+            0 => occ3d::FREE,
+            255 => 255,
+            k => k - 1,
+        })
+        .collect()
+}
+
+/// Any of the supported datasets.
+// One value per run: the size difference of the variants does not matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug)]
+pub enum Dataset {
+    /// SemanticKITTI layout.
+    Kitti(KittiDataset),
+    /// nuScenes layouts.
+    Surround(SurroundDataset),
+}
+
+impl Dataset {
+    /// Opens the frames of `sequences` (scene names for the nuScenes layouts, where `"*"` means
+    /// every scene not in `exclude`) in the layout `cfg.format`.
+    pub fn open(
+        root: &Path,
+        cfg: &crate::config::DataConfig,
+        sequences: &[String],
+        exclude: &[String],
+    ) -> Result<Self, TrainError> {
+        match cfg.format {
+            DatasetFormat::SemanticKitti => Ok(Dataset::Kitti(KittiDataset::open(
+                root,
+                sequences,
+                cfg.pipeline(),
+            )?)),
+            f => Ok(Dataset::Surround(SurroundDataset::open(
+                root,
+                f,
+                sequences,
+                exclude,
+                cfg.pipeline(),
+                cfg.gt_dir.as_deref(),
+                cfg.nuscenes_version.as_deref(),
+            )?)),
+        }
+    }
+
+    /// The layout.
+    pub fn format(&self) -> DatasetFormat {
+        match self {
+            Dataset::Kitti(_) => DatasetFormat::SemanticKitti,
+            Dataset::Surround(s) => s.format,
+        }
+    }
+    /// Frames in order.
+    pub fn frames(&self) -> &[FrameRef] {
+        match self {
+            Dataset::Kitti(d) => d.frames(),
+            Dataset::Surround(d) => &d.refs,
+        }
+    }
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.frames().len()
+    }
+    /// True without frames.
+    pub fn is_empty(&self) -> bool {
+        self.frames().is_empty()
+    }
+    /// The full-resolution label grid.
+    pub fn grid(&self) -> VoxelGrid {
+        match self {
+            Dataset::Kitti(d) => d.grid(),
+            Dataset::Surround(d) => d.grid,
+        }
+    }
+    /// Whether frames carry LiDAR points (depth supervision).
+    pub fn set_load_points(&mut self, on: bool) {
+        match self {
+            Dataset::Kitti(d) => d.load_points = on,
+            Dataset::Surround(d) => d.load_points = on,
+        }
+    }
+    /// Loads frame `i`; with `rng`, applies the training augmentation.
+    pub fn load<R: Rng + ?Sized>(
+        &self,
+        i: usize,
+        rng: Option<&mut R>,
+    ) -> Result<Sample, TrainError> {
+        match self {
+            Dataset::Kitti(d) => d.load(i, rng),
+            Dataset::Surround(d) => d.load(i, rng),
+        }
+    }
+
+    /// Writes the prediction of frame `i` (training ids, flat `[X][Y][Z]`) below `out_root` in the
+    /// dataset's own layout, atomically: SemanticKITTI `sequences/XX/predictions/NNNNNN.label`
+    /// (raw ids), Occ3D `<scene>/<token>/labels.npz` (`semantics`, classes 0..=17), nuScenes-Occupancy
+    /// `scene_<scene token>/occupancy/<lidar token>.npy` (sparse `[z, y, x, cls]`).
+    pub fn write_prediction(
+        &self,
+        out_root: &Path,
+        i: usize,
+        classes: &[u8],
+    ) -> Result<PathBuf, TrainError> {
+        let path = self.prediction_path(out_root, i)?;
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })?;
+        }
+        match self {
+            Dataset::Kitti(_) => {
+                sk::write_label_raw(&path, &LearningMap::semantic_kitti().inverse_remap(classes))?
+            }
+            Dataset::Surround(d) if d.format == DatasetFormat::NuscenesOccupancy => {
+                nocc::write_sparse_occupancy(&path, classes)?
+            }
+            Dataset::Surround(d) => {
+                let n = d.grid.num_voxels();
+                let labels = Occ3dLabels {
+                    semantics: occ3d_from_training(classes),
+                    mask_lidar: vec![1; n],
+                    mask_camera: vec![1; n],
+                    dims: d.grid.dims,
+                };
+                occ3d::write_labels_npz(&path, &labels)?
+            }
+        }
+        Ok(path)
+    }
+
+    /// Where [`Dataset::write_prediction`] puts frame `i`.
+    pub fn prediction_path(&self, out_root: &Path, i: usize) -> Result<PathBuf, TrainError> {
+        let f = self
+            .frames()
+            .get(i)
+            .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?;
+        Ok(match self {
+            Dataset::Kitti(_) => KittiPaths::new(out_root).prediction(&f.sequence, &f.frame),
+            Dataset::Surround(d) if d.format == DatasetFormat::NuscenesOccupancy => {
+                let (_, cams) = d.cameras_of(i)?;
+                d.tables.occupancy_path(out_root, &cams)
+            }
+            Dataset::Surround(_) => out_root.join(&f.sequence).join(&f.frame).join("labels.npz"),
+        })
+    }
+
+    /// True when every frame has ground truth.
+    pub fn is_labelled(&self) -> Result<bool, TrainError> {
+        match self {
+            Dataset::Kitti(d) => Ok(d
+                .frames()
+                .iter()
+                .all(|f| d.paths.voxels(&f.sequence, &f.frame, "label").exists())),
+            Dataset::Surround(d) => {
+                for i in 0..d.frames.len() {
+                    if !d.gt_path(i)?.exists() {
+                        return Ok(false);
+                    }
+                }
+                Ok(true)
+            }
+        }
+    }
+
+    /// Scores the predictions written by [`Dataset::write_prediction`] below `pred_root` against
+    /// this dataset's frames with the official protocol (the files are read back with the
+    /// protocol's own readers; Occ3D evaluates `mask_camera` voxels, nuScenes-Occupancy ignores noise).
+    pub fn score(&self, pred_root: &Path) -> Result<EvalReport, TrainError> {
+        match self {
+            Dataset::Kitti(d) => {
+                let mut seqs: Vec<String> = d.frames().iter().map(|f| f.sequence.clone()).collect();
+                seqs.dedup();
+                Ok(occ_eval::score_semantic_kitti_folder(
+                    &d.root,
+                    pred_root,
+                    &FolderOptions {
+                        sequences: Some(&seqs),
+                        ..Default::default()
+                    },
+                )?)
+            }
+            Dataset::Surround(d) => {
+                let mut ev = Evaluator::new(d.format.protocol());
+                for i in 0..d.frames.len() {
+                    let name =
+                        format!("{}/{}", d.frames[i].frame.sequence, d.frames[i].frame.frame);
+                    let gt_p = d.gt_path(i)?;
+                    let pred_p = self.prediction_path(pred_root, i)?;
+                    if d.format == DatasetFormat::NuscenesOccupancy {
+                        let gt = nocc::read_sparse_occupancy(&gt_p)?;
+                        let pred = nocc::read_sparse_occupancy(&pred_p)?;
+                        ev.add_frame(&pred, &gt, EvalMask::All, &name)?;
+                    } else {
+                        let gt = occ3d::read_labels_npz(&gt_p)?;
+                        let pred = occ_eval::folder::read_occ3d_prediction(&pred_p, gt.dims)?;
+                        ev.add_frame(
+                            &pred,
+                            &gt.semantics,
+                            EvalMask::Visible(&gt.mask_camera),
+                            &name,
+                        )?;
+                    }
+                }
+                Ok(ev.report())
+            }
+        }
+    }
+}
+
+/// Camera input of a view (grid frame -> pixels, with the augmentation folded in).
+pub fn camera_input(view: &CameraView) -> CameraInput {
+    CameraInput {
+        img_from_lidar: view.img_from_lidar(),
+        cam_from_lidar: view.cam_from_lidar,
+    }
+}
+
+/// Stacks samples (the same number of cameras each) into a [`Batch`] on `device`.
 pub fn collate<B: Backend>(
     samples: &[Sample],
     grid: VoxelGrid,
@@ -199,18 +750,24 @@ pub fn collate<B: Backend>(
         .first()
         .ok_or_else(|| TrainError::Data("empty batch".into()))?;
     let (w, h) = first.size;
-    let mut data = Vec::with_capacity(samples.len() * 3 * w * h);
+    let v = first.cameras.len();
+    let mut data = Vec::with_capacity(samples.len() * v * 3 * w * h);
     for s in samples {
-        if s.size != (w, h) {
+        if s.size != (w, h) || s.cameras.len() != v || s.chw.len() != v * 3 * w * h {
             return Err(TrainError::Data(format!(
-                "frame {}/{}: image size {:?} differs from {:?} in the same batch",
-                s.frame.sequence, s.frame.frame, s.size, first.size
+                "frame {}/{}: {} images of {:?} ({} values) differ from {v} of {:?} in the same batch",
+                s.frame.sequence,
+                s.frame.frame,
+                s.cameras.len(),
+                s.size,
+                s.chw.len(),
+                first.size
             )));
         }
         data.extend_from_slice(&s.chw);
     }
     let images =
-        Tensor::<B, 5>::from_data(TensorData::new(data, [samples.len(), 1, 3, h, w]), device);
+        Tensor::<B, 5>::from_data(TensorData::new(data, [samples.len(), v, 3, h, w]), device);
     let target = if samples.iter().all(|s| s.target.is_some()) {
         Some(
             samples
@@ -233,7 +790,7 @@ pub fn collate<B: Backend>(
     };
     Ok(Batch {
         images,
-        cameras: samples.iter().map(|s| vec![s.camera.clone()]).collect(),
+        cameras: samples.iter().map(|s| s.cameras.clone()).collect(),
         grid,
         target,
         points,

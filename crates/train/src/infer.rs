@@ -1,13 +1,13 @@
 //! Inference: a trained [`OccNet`] over dataset frames or a single camera image, to full-resolution
-//! class grids and the SemanticKITTI submission layout.
+//! class grids written in the dataset's own layout (SemanticKITTI submission `.label`, Occ3D
+//! `labels.npz`, nuScenes-Occupancy sparse `.npy`).
 
-use crate::dataset::{collate, FrameRef, KittiDataset, Sample};
+use crate::dataset::{camera_input, collate, Dataset, FrameRef, Sample};
 use crate::TrainError;
-use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
-use occ_data::image::{process_image, read_png, ImagePipelineConfig};
-use occ_data::labels::LearningMap;
+use occ_data::formats::semantic_kitti as sk;
+use occ_data::image::{process_image, read_image, ImagePipelineConfig};
 use occ_geometry::VoxelGrid;
-use occ_model::{CameraInput, OccNet};
+use occ_model::OccNet;
 use occ_sparse::SparseConvBackend;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -47,38 +47,31 @@ pub fn predict_sample<B: SparseConvBackend>(
     })
 }
 
-/// Predicts every frame of `ds` and writes `out_root/sequences/XX/predictions/NNNNNN.label`
-/// (raw SemanticKITTI ids, written atomically). `on_frame(done, total, &frame, &prediction)`
-/// reports progress. Returns the files written with their forward times.
+/// Predicts every frame of `ds` and writes each below `out_root` in the dataset's layout
+/// ([`Dataset::write_prediction`]: SemanticKITTI `sequences/XX/predictions/NNNNNN.label`, Occ3D
+/// `<scene>/<token>/labels.npz`, nuScenes-Occupancy `scene_<token>/occupancy/<lidar token>.npy`;
+/// atomically). `on_frame(done, total, &frame, &prediction)` reports progress. Returns the files
+/// written with their forward times.
 pub fn predict_dataset<B: SparseConvBackend>(
     model: &OccNet<B>,
-    ds: &KittiDataset,
+    ds: &Dataset,
     out_root: &Path,
     device: &B::Device,
     on_frame: &mut dyn FnMut(usize, usize, &FrameRef, &Prediction),
 ) -> Result<Vec<(PathBuf, f64)>, TrainError> {
-    let map = LearningMap::semantic_kitti();
     let mut written = Vec::with_capacity(ds.len());
     for i in 0..ds.len() {
         let sample = ds.load::<rand_chacha::ChaCha8Rng>(i, None)?;
         let pred = predict_sample(model, &sample, ds.grid(), device)?;
-        // Submission layout; the grid may be a synthetic one (any size), so no fixed-size writer.
-        let path =
-            KittiPaths::new(out_root).prediction(&sample.frame.sequence, &sample.frame.frame);
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
-                path: dir.to_path_buf(),
-                source,
-            })?;
-        }
-        sk::write_label_raw(&path, &map.inverse_remap(&pred.classes))?;
+        let path = ds.write_prediction(out_root, i, &pred.classes)?;
         on_frame(i + 1, ds.len(), &sample.frame, &pred);
         written.push((path, pred.seconds));
     }
     Ok(written)
 }
 
-/// Loads one camera image with its KITTI-format calibration (`P2`, `Tr`) as a test-time sample.
+/// Loads one camera image (PNG or JPEG) with its KITTI-format calibration (`P2`, `Tr`) as a
+/// test-time sample.
 ///
 /// The image may have any size; it goes through the test-time pipeline (resize to the network
 /// width, bottom crop), and the calibration is adjusted accordingly. An image whose size does not
@@ -88,7 +81,7 @@ pub fn load_single_image(
     calib: &Path,
     pipeline: &ImagePipelineConfig,
 ) -> Result<Sample, TrainError> {
-    let img = read_png(image)?;
+    let img = read_image(image)?;
     let cal = sk::read_calib(calib)?;
     let (cx, cy) = (cal.p2[0][2], cal.p2[1][2]);
     let (w, h) = (img.width as f64, img.height as f64);
@@ -116,10 +109,7 @@ pub fn load_single_image(
         },
         chw: processed.chw,
         size: (processed.width, processed.height),
-        camera: CameraInput {
-            img_from_lidar: view.img_from_lidar(),
-            cam_from_lidar: view.cam_from_lidar,
-        },
+        cameras: vec![camera_input(&view)],
         target: None,
         points: None,
     })

@@ -5,7 +5,7 @@
 //! augmentation of step `s` from `(seed, s)`, so a run resumed from a checkpoint sees the same data as
 //! an uninterrupted one.
 
-use crate::dataset::{collate, KittiDataset, Sample};
+use crate::dataset::{collate, Dataset, Sample};
 use crate::error::TrainError;
 use crate::grads::{clip_global_norm, split_no_decay};
 use crate::schedule::WarmupCosine;
@@ -153,7 +153,7 @@ impl CheckpointPaths {
 
 /// Loads the samples of `idx` in parallel.
 fn load_samples(
-    ds: &KittiDataset,
+    ds: &Dataset,
     idx: &[usize],
     augment_seed: Option<u64>,
 ) -> Result<Vec<Sample>, TrainError> {
@@ -186,7 +186,7 @@ fn batch_indices(n: usize, batch: usize, seed: u64, step: usize) -> Vec<usize> {
 pub fn train<B, M>(
     mut model: M,
     cfg: &TrainConfig,
-    ds: &KittiDataset,
+    ds: &Dataset,
     run: &Path,
     resume: bool,
     device: &B::Device,

@@ -580,3 +580,44 @@ impl NuscenesTables {
             .join(format!("{}.npy", cams.lidar_token))
     }
 }
+
+/// Read a nuScenes LiDAR sweep `samples/LIDAR_TOP/*.pcd.bin`: little-endian float32 records of
+/// five values (x, y, z in metres in the LiDAR frame, intensity, ring index); returns `[x, y, z]`.
+/// A size that is not a multiple of 20 bytes, or a non-finite coordinate, is an error naming the file.
+pub fn read_lidar_pcd_bin(path: &Path) -> Result<Vec<[f32; 3]>, DataError> {
+    let bytes = read_bytes(path)?;
+    if bytes.len() % 20 != 0 {
+        return Err(DataError::format(
+            path,
+            format!(
+                "{} bytes is not a whole number of 5 x float32 points (20 bytes each)",
+                bytes.len()
+            ),
+        ));
+    }
+    let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    let mut out = Vec::with_capacity(bytes.len() / 20);
+    for (i, rec) in bytes.chunks_exact(20).enumerate() {
+        let p = [f(&rec[0..4]), f(&rec[4..8]), f(&rec[8..12])];
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(DataError::format(
+                path,
+                format!("point {i} has a non-finite coordinate {p:?}"),
+            ));
+        }
+        out.push(p);
+    }
+    Ok(out)
+}
+
+/// `scene.json` record (only the fields this project needs).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SceneRow {
+    pub token: String,
+    pub name: String,
+}
+
+/// Read `scene.json` of a nuScenes version folder (scene token and name).
+pub fn read_scenes(dir: &Path) -> Result<Vec<SceneRow>, DataError> {
+    load_table(dir, "scene.json")
+}
