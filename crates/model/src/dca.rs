@@ -30,6 +30,7 @@
 
 use crate::batch::CameraInput;
 use crate::error::ModelError;
+use crate::sample::bilinear_sample;
 use burn::module::Param;
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
@@ -37,18 +38,6 @@ use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{IndexingUpdateOp, TensorData};
 use occ_geometry::{project_with, VoxelGrid};
 use occ_sparse::Coord;
-
-/// Bilinear sampling of `features [N, C, H, W]` at `grid [N, Hg, Wg, 2]` (`(x, y)` in `[-1, 1]`,
-/// `align_corners = false`, zero padding) → `[N, C, Hg, Wg]`.
-///
-/// Same signature and semantics as `crate::sample::bilinear_sample` (helper "loss"); this local copy
-/// lets the module build before that branch is merged. Swap the call when merging.
-pub(crate) fn bilinear_sample<B: Backend>(
-    features: Tensor<B, 4>,
-    grid: Tensor<B, 4>,
-) -> Tensor<B, 4> {
-    features.grid_sample_2d(grid, burn::tensor::ops::GridSampleOptions::default())
-}
 
 /// Configuration of [`DeformableCrossAttention`].
 #[derive(Config, Debug)]

@@ -64,7 +64,9 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
             &downsample_labels(&gt, tiny_grid().dims, 2),
         )
     };
-    for step in 0..80 {
+    // 80 steps at 1e-2, then 20 at 2e-3 that settle the late Adam spikes of the high rate (without
+    // them the end state depends on float reduction order, i.e. on the machine's load).
+    for step in 0..100 {
         let out = model
             .forward(std::slice::from_ref(&feats), &[STRIDE], &batch)
             .unwrap();
@@ -93,7 +95,8 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
         assert!(v.is_finite(), "step {step}: loss {v}");
         history.push(v);
         let grads = GradientsParams::from_grads(loss.backward(), &model);
-        model = optim.step(1e-2, model, grads);
+        let lr = if step < 80 { 1e-2 } else { 2e-3 };
+        model = optim.step(lr, model, grads);
     }
     let out = model.forward(&[feats], &[STRIDE], &batch).unwrap();
     // The model predicts at 1/2 resolution: score it there, against its own targets (the MonoScene
