@@ -24,9 +24,10 @@
 //! The block around the attention is the usual post-norm transformer layer:
 //! `x = LN(f + W_o·DCA(f + pos))`, `x = LN(x + FFN(x))`.
 //!
-//! Cost: host work is one projection per (voxel, view) (a loop over coordinates); feature work is one
-//! batched bilinear sampling per level over all (voxel, view) hits, padded per image to the largest
-//! number of hits of one image.
+//! Cost: host work is one projection per (voxel, view) (a loop over coordinates). The sampling is
+//! either one fused host loop over the (voxel, view) hits (CPU inference: `M·L·N_s·4·D/M` multiply-adds
+//! per hit, no intermediate tensors), or, where gradients or a device are needed, one batched
+//! `grid_sample` per level over all hits, padded per image to the largest number of hits of one image.
 
 use crate::batch::CameraInput;
 use crate::error::ModelError;
@@ -261,6 +262,22 @@ pub fn project_queries(
     Ok(hits)
 }
 
+/// Whether [`DeformableCrossAttention::aggregate`] takes the fused host loop: the CPU inference
+/// backends (burn-ndarray without autodiff), whose tensors already live in host memory.
+fn host_kernel_backend<B: Backend>() -> bool {
+    use std::any::TypeId;
+    let t = TypeId::of::<B>();
+    t == TypeId::of::<burn::backend::NdArray<f32>>()
+        || t == TypeId::of::<burn::backend::NdArray<f64>>()
+}
+
+/// Tensor data as f64 values.
+fn host_f64(data: TensorData) -> Result<Vec<f64>, ModelError> {
+    data.convert::<f64>()
+        .to_vec::<f64>()
+        .map_err(|e| ModelError::Input(format!("DCA: cannot read tensor data: {e:?}")))
+}
+
 fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
     occ_sparse::backend::index_tensor::<B>(v, device)
 }
@@ -337,7 +354,107 @@ impl<B: Backend> DeformableCrossAttention<B> {
     /// The attention itself: the view-averaged, weighted samples `[N, D]` (heads concatenated) before
     /// the output projection, for `query [N, D]` (feature + position), image features
     /// `feats[l] [B·V, C, h_l, w_l]` with `strides[l]` input pixels per feature pixel.
+    ///
+    /// On the CPU inference backend (`NdArray` without autodiff) the sampling runs as one fused host
+    /// loop over the (voxel, view) hits ([`Self::aggregate_host`]); elsewhere (autodiff, CUDA) it is
+    /// composed of burn tensor ops ([`Self::aggregate_tensor_ops`]). Both compute the same function.
     pub fn aggregate(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        if host_kernel_backend::<B>() {
+            self.aggregate_host(query, hits, feats, strides)
+        } else {
+            self.aggregate_tensor_ops(query, hits, feats, strides)
+        }
+    }
+
+    /// [`Self::aggregate`] as one host loop (f64 arithmetic): per hit, per head, level and point, the
+    /// bilinear sample of the channel-last value map at `(u + 0.5)/s_l − 0.5 + Δp` (zero outside the
+    /// map) weighted by the attention weight; hits summed per query and divided by its number of views.
+    /// The tensors are copied to the host and the result back, so this is meant for host backends;
+    /// it is not differentiable.
+    pub fn aggregate_host(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        use rayon::prelude::*;
+        self.check_inputs(&query, hits, feats, strides)?;
+        let device = query.device();
+        let [n, d] = query.dims();
+        if hits.is_empty() {
+            return Ok(Tensor::zeros([n, d], &device));
+        }
+        let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
+        let dh = d / m;
+        let (offsets, weights) = self.sampling(query);
+        let off = host_f64(offsets.into_data())?;
+        let wts = host_f64(weights.into_data())?;
+        // Channel-last value maps `[B·V, h, w, D]` per level (D head-major).
+        let mut maps = Vec::with_capacity(l);
+        for f in feats {
+            let [bv, c, h, w] = f.dims();
+            let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
+            maps.push((host_f64(self.value_proj.forward(rows).into_data())?, h, w));
+        }
+        let mut per_hit = vec![0.0f64; hits.len() * d];
+        per_hit.par_chunks_mut(d).enumerate().for_each(|(hi, acc)| {
+            let q = hits.query[hi] as usize;
+            let img = hits.image[hi] as usize;
+            let [u, v] = hits.uv[hi];
+            for (lvl, ((map, h, w), &s)) in maps.iter().zip(strides).enumerate() {
+                let (h, w) = (*h as i64, *w as i64);
+                let (bx, by) = ((u + 0.5) / s as f64 - 0.5, (v + 0.5) / s as f64 - 0.5);
+                for head in 0..m {
+                    let out = &mut acc[head * dh..(head + 1) * dh];
+                    for j in 0..p {
+                        let k = ((q * m + head) * l + lvl) * p + j;
+                        let (x, y) = (bx + off[2 * k], by + off[2 * k + 1]);
+                        let (x0, y0) = (x.floor(), y.floor());
+                        let (fx, fy) = (x - x0, y - y0);
+                        let (x0, y0) = (x0 as i64, y0 as i64);
+                        for (yy, wy) in [(y0, 1.0 - fy), (y0 + 1, fy)] {
+                            if yy < 0 || yy >= h {
+                                continue;
+                            }
+                            for (xx, wx) in [(x0, 1.0 - fx), (x0 + 1, fx)] {
+                                if xx < 0 || xx >= w {
+                                    continue;
+                                }
+                                let c = wts[k] * wx * wy;
+                                let row = ((img as i64 * h + yy) * w + xx) as usize * d;
+                                for (o, &val) in out.iter_mut().zip(&map[row + head * dh..]) {
+                                    *o += c * val;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        let mut out = vec![0.0f64; n * d];
+        for (hi, row) in per_hit.chunks_exact(d).enumerate() {
+            let q = hits.query[hi] as usize;
+            for (o, &v) in out[q * d..(q + 1) * d].iter_mut().zip(row) {
+                *o += v;
+            }
+        }
+        for (q, &c) in hits.views_per_query.iter().enumerate() {
+            let inv = if c == 0 { 0.0 } else { 1.0 / c as f64 };
+            out[q * d..(q + 1) * d].iter_mut().for_each(|o| *o *= inv);
+        }
+        Ok(Tensor::from_data(TensorData::new(out, [n, d]), &device))
+    }
+
+    /// [`Self::aggregate`] composed of burn tensor ops (differentiable; any backend): the hits are
+    /// laid out per image in a padded sampling grid, one `grid_sample` per level.
+    pub fn aggregate_tensor_ops(
         &self,
         query: Tensor<B, 2>,
         hits: &ViewHits,

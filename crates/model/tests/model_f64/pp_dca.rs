@@ -131,6 +131,53 @@ fn dca_excludes_views_that_do_not_see_the_voxel() {
     }
 }
 
+/// The fused host loop (CPU inference) and the tensor-op composition (autodiff, CUDA) compute the
+/// same attention, in f64 and in f32, including samples that leave the feature maps.
+#[test]
+fn dca_host_loop_equals_tensor_ops() {
+    fn check<Bk: Backend>(tol: f64) {
+        let device = Default::default();
+        let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
+        let mut dca = DcaConfig::new(d, FEAT_C)
+            .with_num_levels(l)
+            .with_num_heads(m)
+            .with_num_points(p)
+            .init::<Bk>(&device);
+        dca.sampling_offsets.weight =
+            Param::from_tensor(randn([d, m * l * p * 2], 21, &device) * 3.0);
+        dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 22, &device));
+        let g = grid();
+        let coords: Vec<[i32; 4]> = (0..2)
+            .flat_map(|b| (0..64).map(move |i| [b, (i * 5) % 32, (i * 11) % 32, i % 8]))
+            .collect();
+        let cams = cameras(2);
+        let hits = project_queries(&coords, &g, &cams, IMG_HW).unwrap();
+        assert!(hits.len() > 64, "{} hits", hits.len());
+        let feats = features::<Bk>(2, 5, &device);
+        let query = randn::<Bk, 2>([coords.len(), d], 23, &device);
+        let host = to_f64(
+            &dca.aggregate_host(query.clone(), &hits, &feats, &STRIDES)
+                .unwrap(),
+        );
+        let ops = to_f64(
+            &dca.aggregate_tensor_ops(query, &hits, &feats, &STRIDES)
+                .unwrap(),
+        );
+        assert_eq!(host.len(), ops.len());
+        let mut nonzero = 0;
+        for (i, (a, b)) in host.iter().zip(&ops).enumerate() {
+            assert!(
+                (a - b).abs() < tol * (1.0 + b.abs()),
+                "entry {i}: {a} vs {b}"
+            );
+            nonzero += usize::from(*b != 0.0);
+        }
+        assert!(nonzero > host.len() / 2);
+    }
+    check::<B64>(1e-10);
+    check::<NB>(1e-4);
+}
+
 #[test]
 fn dca_block_shapes_and_bad_inputs() {
     let device = Default::default();
