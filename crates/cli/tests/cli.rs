@@ -258,39 +258,15 @@ fn train_resume_infer_eval_and_bad_input() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// A very small SparseOcc++ on the six-camera Occ3D layout (synthetic `surround` data).
-const TINY_OCC3D: &str = r#"
-[model]
-kind = "sparseocc++"
-num_classes = 18
-full_dims = [200, 200, 16]
-lss_level = 0
-
-[model.encoder.resnet]
-depth = 18
-base_width = 8
-out_indices = [1]
-
-[model.encoder.fpn]
-out_channels = 16
-
-[model.sparseocc_pp]
-embed_dim = 16
-dca_heads = 2
-keep_ratios = [1.0, 0.1, 0.1]
-
-[train]
-steps = 2
-lr = 1e-3
-checkpoint_every = 2
-
-[data]
-format = "occ3d"
-image_width = 176
-image_height = 64
-train_sequences = ["*"]
-val_sequences = ["scene-b"]
-"#;
+/// [`TINY`] on the six-camera Occ3D layout (synthetic `surround` data at 160x64).
+fn tiny_occ3d() -> String {
+    TINY.replace("num_classes = 20", "num_classes = 18")
+        .replace("full_dims = [128, 128, 16]", "full_dims = [200, 200, 16]")
+        .replace(
+            "train_sequences = [\"00\"]\nval_sequences = [\"08\"]",
+            "format = \"occ3d\"\ntrain_sequences = [\"*\"]\nval_sequences = [\"scene-b\"]",
+        )
+}
 
 #[test]
 fn surround_occ3d_train_infer_eval() {
@@ -305,10 +281,12 @@ fn surround_occ3d_train_infer_eval() {
         "--sequences",
         "a:2,b:1",
         "--image-size",
-        "176x64",
+        "160x64",
     ]);
     let cfg = root.join("occ3d.toml");
-    std::fs::write(&cfg, TINY_OCC3D).unwrap();
+    let text = tiny_occ3d();
+    assert!(text.contains("format = \"occ3d\""));
+    std::fs::write(&cfg, text).unwrap();
     let run = root.join("run");
     let text = ok(&[
         "train",

@@ -351,6 +351,20 @@ impl<B: Backend> DeformableCrossAttention<B> {
         Ok(())
     }
 
+    /// Checks the inputs; `Some(zeros [N, D])` when no view sees any query (nothing to sample).
+    fn checked_or_zeros(
+        &self,
+        query: &Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Result<Option<Tensor<B, 2>>, ModelError> {
+        self.check_inputs(query, hits, feats, strides)?;
+        Ok(hits
+            .is_empty()
+            .then(|| Tensor::zeros(query.dims(), &query.device())))
+    }
+
     /// The attention itself: the view-averaged, weighted samples `[N, D]` (heads concatenated) before
     /// the output projection, for `query [N, D]` (feature + position), image features
     /// `feats[l] [B·V, C, h_l, w_l]` with `strides[l]` input pixels per feature pixel.
@@ -385,12 +399,11 @@ impl<B: Backend> DeformableCrossAttention<B> {
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
         use rayon::prelude::*;
-        self.check_inputs(&query, hits, feats, strides)?;
+        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
+            return Ok(zeros);
+        }
         let device = query.device();
         let [n, d] = query.dims();
-        if hits.is_empty() {
-            return Ok(Tensor::zeros([n, d], &device));
-        }
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
         let dh = d / m;
         let (offsets, weights) = self.sampling(query);
@@ -461,12 +474,11 @@ impl<B: Backend> DeformableCrossAttention<B> {
         feats: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
-        self.check_inputs(&query, hits, feats, strides)?;
+        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
+            return Ok(zeros);
+        }
         let device = query.device();
         let [n, d] = query.dims();
-        if hits.is_empty() {
-            return Ok(Tensor::zeros([n, d], &device));
-        }
         let (m, p) = (self.num_heads, self.num_points);
         let dh = d / m;
         let nh = hits.len();
