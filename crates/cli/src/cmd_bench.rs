@@ -189,6 +189,10 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         );
     }
     let device = backend::device();
+    // Seeded weights (the config's `train.seed`): the same random network in every run, so that
+    // runs compare the same amount of work (an untrained SparseOcc++ keeps a weight-dependent
+    // number of voxels after propagation).
+    <Infer as burn::tensor::backend::Backend>::seed(&device, cfg.train.seed);
     let model: OccNet<Infer> = cfg.model.init(&device)?;
     let sample = ds.load::<rand_chacha::ChaCha8Rng>(0, None)?;
     let mut latency = Vec::new();

@@ -24,6 +24,7 @@
 //! Batch norm follows burn: batch statistics on an autodiff backend, running statistics otherwise
 //! (call `.valid()` on an autodiff module for evaluation-mode normalisation).
 
+use crate::conv2d_host::conv_bn;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -264,13 +265,15 @@ impl<B: Backend> ResBlock<B> {
     /// `[N, inplanes, H, W]` → `[N, planes·expansion, H/stride, W/stride]` (ceil for odd sizes).
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let identity = match &self.downsample {
-            Some((conv, bn)) => bn.forward(conv.forward(x.clone())),
+            Some((conv, bn)) => conv_bn(conv, Some(bn), x.clone(), false),
             None => x.clone(),
         };
-        let out = relu(self.bn1.forward(self.conv1.forward(x)));
-        let out = self.bn2.forward(self.conv2.forward(out));
+        let out = conv_bn(&self.conv1, Some(&self.bn1), x, true);
+        let bottleneck = self.conv3.is_some() && self.bn3.is_some();
+        // The Bottleneck's ReLU between bn2 and conv3 is fused into the conv2 step.
+        let out = conv_bn(&self.conv2, Some(&self.bn2), out, bottleneck);
         let out = match (&self.conv3, &self.bn3) {
-            (Some(conv3), Some(bn3)) => bn3.forward(conv3.forward(relu(out))),
+            (Some(conv3), Some(bn3)) => conv_bn(conv3, Some(bn3), out, false),
             _ => out,
         };
         relu(out + identity)
@@ -304,7 +307,7 @@ impl<B: Backend> ResNet<B> {
     pub fn forward(&self, images: Tensor<B, 4>) -> Vec<Tensor<B, 4>> {
         let mut x = self
             .maxpool
-            .forward(relu(self.bn1.forward(self.conv1.forward(images))));
+            .forward(conv_bn(&self.conv1, Some(&self.bn1), images, true));
         let last = self.out_indices.iter().copied().max().unwrap_or(0);
         let mut outs = Vec::with_capacity(self.out_indices.len());
         for (stage, layer) in self.stages().into_iter().enumerate() {

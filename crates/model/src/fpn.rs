@@ -10,6 +10,7 @@
 //! uniform weights, zero biases. Field names `lateral_convs.{i}` / `fpn_convs.{i}` (mmdet's keys without
 //! the `ConvModule` `.conv` level).
 
+use crate::conv2d_host::conv_bn;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -121,7 +122,7 @@ impl<B: Backend> Fpn<B> {
             .lateral_convs
             .iter()
             .zip(inputs)
-            .map(|(conv, x)| conv.forward(x))
+            .map(|(conv, x)| conv_bn(conv, None, x, false))
             .collect();
         for i in (1..laterals.len()).rev() {
             let [_, _, h, w] = laterals[i - 1].dims();
@@ -135,7 +136,7 @@ impl<B: Backend> Fpn<B> {
         self.fpn_convs
             .iter()
             .zip(laterals)
-            .map(|(conv, x)| conv.forward(x))
+            .map(|(conv, x)| conv_bn(conv, None, x, false))
             .collect()
     }
 }

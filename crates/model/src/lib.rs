@@ -9,6 +9,7 @@
 pub mod anchors;
 pub mod backbone;
 pub mod batch;
+pub mod conv2d_host;
 pub mod dca;
 pub mod dense_baseline;
 pub mod error;

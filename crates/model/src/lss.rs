@@ -31,6 +31,7 @@
 //!   feature that is exactly zero by chance still counts), as the paper's "gathering non-empty voxels".
 
 use crate::batch::Batch;
+use crate::conv2d_host::conv_bn;
 use crate::error::ModelError;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d};
@@ -217,7 +218,7 @@ impl<B: Backend> Lss<B> {
         let grid = self.lss_grid(&batch.grid);
         let frustum = Frustum::new(batch, h, w, stride, self.dbound, grid)?;
 
-        let x = relu(self.reduce_bn.forward(self.reduce.forward(feats)));
+        let x = conv_bn(&self.reduce, Some(&self.reduce_bn), feats, true);
         let (xd, xc) = match &self.gates {
             Some(g) => {
                 let cam = camera_params::<B>(batch, &device)?;
@@ -232,10 +233,9 @@ impl<B: Backend> Lss<B> {
             }
             None => (x.clone(), x),
         };
-        let depth_logits = self
-            .depth_out
-            .forward(relu(self.depth_bn.forward(self.depth_conv.forward(xd))));
-        let context = self.context_out.forward(xc);
+        let depth_hidden = conv_bn(&self.depth_conv, Some(&self.depth_bn), xd, true);
+        let depth_logits = conv_bn(&self.depth_out, None, depth_hidden, false);
+        let context = conv_bn(&self.context_out, None, xc, false);
         Ok(LssOutput {
             depth_logits,
             context,

@@ -1,0 +1,442 @@
+//! Image-side 2D convolutions (backbone, FPN, LSS depth net) with their inference BatchNorm folded in,
+//! computed on the CPU inference backend as im2col + one GEMM per image.
+//!
+//! burn-ndarray's `conv2d` is a direct convolution: the ResNet-50 + FPN encoder of the SemanticKITTI
+//! setting (1280x384) took 11-12 s on this project's 2-core reference machine, against 2.0 s here (the
+//! GEMM reaches 35-45 GFLOP/s). The encoder is shared by the three models, so it bounded every
+//! end-to-end ratio of the benchmark (issue 8). [`conv_bn`] keeps burn's modules and weights as
+//! they are and only changes how the forward pass is computed when the backend is burn-ndarray
+//! without autodiff (inference): the BN's `gamma / sqrt(var + eps)` is folded into the convolution
+//! weight and its shift into the bias (the standard inference-time fusion), the input is unfolded into
+//! a `[C_in·k_h·k_w, H_out·W_out]` matrix (skipped for 1x1 stride-1 convolutions, whose input already
+//! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with `matrixmultiply` on all
+//! cores. Training (autodiff) and GPU backends take burn's own `Conv2d` and `BatchNorm` forward.
+
+use burn::backend::ndarray::NdArrayTensor;
+use burn::nn::conv::Conv2d;
+use burn::nn::{BatchNorm, PaddingConfig2d};
+use burn::tensor::activation::relu;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Tensor, TensorData};
+use occ_sparse::host::HostFloat;
+use rayon::prelude::*;
+
+/// Float types of the host path: [`HostFloat`] plus conversion from the f64 the folding is done in,
+/// and zero-copy access to a burn-ndarray tensor of that type.
+trait Elem:
+    HostFloat
+    + std::ops::Mul<Output = Self>
+    + std::ops::Add<Output = Self>
+    + PartialOrd
+    + burn::tensor::Element
+{
+    fn from_f64(v: f64) -> Self;
+    /// `f(values)` in row-major order, borrowed when the array is already in standard layout; `None`
+    /// when the tensor holds another element type.
+    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R>;
+}
+
+impl Elem for f32 {
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R> {
+        match t {
+            NdArrayTensor::F32(s) => Some(f(s.view().as_standard_layout().as_slice()?)),
+            _ => None,
+        }
+    }
+}
+
+impl Elem for f64 {
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R> {
+        match t {
+            NdArrayTensor::F64(s) => Some(f(s.view().as_standard_layout().as_slice()?)),
+            _ => None,
+        }
+    }
+}
+
+/// `f(values)` of a tensor of the burn-ndarray backend without going through `TensorData` (whose
+/// conversion iterates element by element when the array is shared, e.g. a parameter or a tensor
+/// also kept for a residual connection).
+fn with_host_slice<B: Backend, const D: usize, T: Elem, R>(
+    x: &Tensor<B, D>,
+    f: impl FnOnce(&[T]) -> R,
+) -> Option<R> {
+    let prim = x.clone().into_primitive().tensor();
+    let nd = (&prim as &dyn std::any::Any).downcast_ref::<NdArrayTensor>()?;
+    T::with_slice(nd, f)
+}
+
+fn read<B: Backend, const D: usize, T: Elem>(t: &Tensor<B, D>) -> Option<Vec<T>> {
+    with_host_slice(t, |s: &[T]| s.to_vec())
+}
+
+/// `relu?(bn?(conv(x)))` — the composition of burn's `Conv2d::forward`, `BatchNorm::forward` and `relu`,
+/// fused on the CPU inference backend (see the module documentation).
+///
+/// # Shapes
+/// - x: `[N, C_in, H, W]`
+/// - returns `[N, C_out, H_out, W_out]` (burn's output-size rule)
+pub fn conv_bn<B: Backend>(
+    conv: &Conv2d<B>,
+    bn: Option<&BatchNorm<B>>,
+    x: Tensor<B, 4>,
+    apply_relu: bool,
+) -> Tensor<B, 4> {
+    if let Some(pads) = host_plan::<B>(conv) {
+        let t = std::any::TypeId::of::<B>();
+        let t0 = std::time::Instant::now();
+        let dims = x.dims();
+        let out = if t == std::any::TypeId::of::<burn::backend::NdArray<f32>>() {
+            host_forward::<B, f32>(conv, bn, &x, pads, apply_relu)
+        } else {
+            host_forward::<B, f64>(conv, bn, &x, pads, apply_relu)
+        };
+        if let Some(out) = out {
+            if std::env::var("CONVPROF").is_ok() {
+                let o = out.dims();
+                eprintln!(
+                    "CONVPROF {:?} -> {:?} k{:?} s{:?} {:.1} ms",
+                    dims,
+                    o,
+                    conv.kernel_size,
+                    conv.stride,
+                    t0.elapsed().as_secs_f64() * 1e3
+                );
+            }
+            return out;
+        }
+    }
+    let y = conv.forward(x);
+    let y = match bn {
+        Some(bn) => bn.forward(y),
+        None => y,
+    };
+    if apply_relu {
+        relu(y)
+    } else {
+        y
+    }
+}
+
+/// Padding `(top, left, bottom, right)` when the host path applies: burn-ndarray f32/f64 without
+/// autodiff, ungrouped convolution, explicit or no padding.
+fn host_plan<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
+    use std::any::TypeId;
+    let t = TypeId::of::<B>();
+    let host = t == TypeId::of::<burn::backend::NdArray<f32>>()
+        || t == TypeId::of::<burn::backend::NdArray<f64>>();
+    if !host || conv.groups != 1 {
+        return None;
+    }
+    match conv.padding {
+        PaddingConfig2d::Valid => Some([0; 4]),
+        PaddingConfig2d::Explicit(t, l, b, r) => Some([t, l, b, r]),
+        PaddingConfig2d::Same => None,
+    }
+}
+
+/// Geometry of one convolution.
+#[derive(Clone, Copy, Debug)]
+struct Geometry {
+    h: usize,
+    w: usize,
+    kh: usize,
+    kw: usize,
+    stride: [usize; 2],
+    dilation: [usize; 2],
+    /// `(top, left)`.
+    pad: [usize; 2],
+    ho: usize,
+    wo: usize,
+}
+
+impl Geometry {
+    /// `true` when the input matrix `[C_in, H·W]` already is the unfolded one.
+    fn is_pointwise(&self) -> bool {
+        self.kh == 1 && self.kw == 1 && self.stride == [1, 1] && self.pad == [0, 0]
+    }
+
+    /// Unfold one image `[C_in, H, W]` into `col [C_in·k_h·k_w, H_out·W_out]` (zeros outside).
+    fn im2col<T: Elem>(&self, img: &[T], col: &mut [T]) {
+        let (hw_out, kk) = (self.ho * self.wo, self.kh * self.kw);
+        col.par_chunks_mut(hw_out)
+            .enumerate()
+            .for_each(|(row, dst)| {
+                let (ci, ky, kx) = (row / kk, (row % kk) / self.kw, row % self.kw);
+                let src = &img[ci * self.h * self.w..(ci + 1) * self.h * self.w];
+                let dx = (kx * self.dilation[1]) as isize - self.pad[1] as isize;
+                for oy in 0..self.ho {
+                    let iy = (oy * self.stride[0] + ky * self.dilation[0]) as isize
+                        - self.pad[0] as isize;
+                    let out = &mut dst[oy * self.wo..(oy + 1) * self.wo];
+                    if iy < 0 || iy >= self.h as isize {
+                        out.fill(T::zero());
+                        continue;
+                    }
+                    let line = &src[iy as usize * self.w..(iy as usize + 1) * self.w];
+                    if self.stride[1] == 1 {
+                        // Contiguous copy between the zero borders.
+                        let lo = (-dx).clamp(0, self.wo as isize) as usize;
+                        let hi =
+                            (self.w as isize - dx).clamp(lo as isize, self.wo as isize) as usize;
+                        out[..lo].fill(T::zero());
+                        let start = (lo as isize + dx) as usize;
+                        out[lo..hi].copy_from_slice(&line[start..start + (hi - lo)]);
+                        out[hi..].fill(T::zero());
+                    } else {
+                        for (ox, o) in out.iter_mut().enumerate() {
+                            let ix = (ox * self.stride[1]) as isize + dx;
+                            *o = if ix < 0 || ix >= self.w as isize {
+                                T::zero()
+                            } else {
+                                line[ix as usize]
+                            };
+                        }
+                    }
+                }
+            });
+    }
+}
+
+/// The fused host forward; `None` (caller falls back to burn) if a tensor's element type is not `T`.
+fn host_forward<B: Backend, T: Elem>(
+    conv: &Conv2d<B>,
+    bn: Option<&BatchNorm<B>>,
+    x: &Tensor<B, 4>,
+    [top, left, bottom, right]: [usize; 4],
+    apply_relu: bool,
+) -> Option<Tensor<B, 4>> {
+    let [n, cin, h, w] = x.dims();
+    let [cout, wcin, kh, kw] = conv.weight.dims();
+    let (stride, dilation) = (conv.stride, conv.dilation);
+    let span = |k: usize, d: usize| d * (k - 1) + 1;
+    if wcin != cin
+        || h + top + bottom < span(kh, dilation[0])
+        || w + left + right < span(kw, dilation[1])
+        || stride.contains(&0)
+    {
+        return None; // let burn report the shape error
+    }
+    let geo = Geometry {
+        h,
+        w,
+        kh,
+        kw,
+        stride,
+        dilation,
+        pad: [top, left],
+        ho: (h + top + bottom - span(kh, dilation[0])) / stride[0] + 1,
+        wo: (w + left + right - span(kw, dilation[1])) / stride[1] + 1,
+    };
+
+    // Fold the BN (inference statistics) into the weight rows and the bias, in f64.
+    let weight: Vec<T> = read(&conv.weight.val())?;
+    let bias: Vec<f64> = match &conv.bias {
+        Some(b) => read::<B, 1, T>(&b.val())?
+            .iter()
+            .map(|v| v.to_f64())
+            .collect(),
+        None => vec![0.0; cout],
+    };
+    let (scale, shift) = match bn {
+        Some(bn) => {
+            let g: Vec<T> = read(&bn.gamma.val())?;
+            let b: Vec<T> = read(&bn.beta.val())?;
+            let m: Vec<T> = read(&bn.running_mean.value())?;
+            let v: Vec<T> = read(&bn.running_var.value())?;
+            let scale: Vec<f64> = (0..cout)
+                .map(|o| g[o].to_f64() / (v[o].to_f64() + bn.epsilon).sqrt())
+                .collect();
+            let shift = (0..cout)
+                .map(|o| (bias[o] - m[o].to_f64()) * scale[o] + b[o].to_f64())
+                .collect();
+            (Some(scale), shift)
+        }
+        None => (None, bias),
+    };
+    let k = cin * kh * kw;
+    let weight: Vec<T> = match &scale {
+        Some(s) => weight
+            .chunks(k)
+            .zip(s)
+            .flat_map(|(row, &s)| row.iter().map(move |&v| T::from_f64(v.to_f64() * s)))
+            .collect(),
+        None => weight,
+    };
+    let shift: Vec<T> = shift.into_iter().map(T::from_f64).collect();
+
+    let hw_out = geo.ho * geo.wo;
+    let mut out = vec![T::zero(); n * cout * hw_out];
+    let mut col = if geo.is_pointwise() {
+        Vec::new()
+    } else {
+        vec![T::zero(); k * hw_out]
+    };
+    with_host_slice(x, |input: &[T]| {
+        for (img, dst) in input.chunks(cin * h * w).zip(out.chunks_mut(cout * hw_out)) {
+            let b_mat: &[T] = if geo.is_pointwise() {
+                img
+            } else {
+                geo.im2col(img, &mut col);
+                &col
+            };
+            // SAFETY: weight is [cout, k] row-major, b_mat [k, hw_out] row-major, dst [cout, hw_out].
+            unsafe {
+                T::gemm(
+                    cout,
+                    k,
+                    hw_out,
+                    weight.as_ptr(),
+                    k as isize,
+                    1,
+                    b_mat.as_ptr(),
+                    hw_out as isize,
+                    1,
+                    T::zero(),
+                    dst.as_mut_ptr(),
+                    hw_out as isize,
+                    1,
+                );
+            }
+            dst.par_chunks_mut(hw_out)
+                .zip(shift.par_iter())
+                .for_each(|(row, &s)| {
+                    for v in row.iter_mut() {
+                        let y = *v + s;
+                        *v = if apply_relu && y < T::zero() {
+                            T::zero()
+                        } else {
+                            y
+                        };
+                    }
+                });
+        }
+    })?;
+    Some(Tensor::from_data(
+        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
+        &x.device(),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+    use burn::module::Param;
+    use burn::nn::conv::Conv2dConfig;
+    use burn::nn::BatchNormConfig;
+    use burn::tensor::Distribution;
+
+    type B = NdArray<f64>;
+
+    /// burn's own `Conv2d` -> `BatchNorm` (inference statistics) -> `relu`, called directly.
+    fn reference(conv: &Conv2d<B>, bn: &BatchNorm<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        relu(bn.forward(conv.forward(x)))
+    }
+
+    fn random_bn(c: usize, device: &burn::backend::ndarray::NdArrayDevice) -> BatchNorm<B> {
+        let mut bn = BatchNormConfig::new(c).init::<B>(device);
+        let d = Distribution::Uniform(0.5, 1.5);
+        bn.gamma = Param::from_tensor(Tensor::random([c], d, device));
+        bn.beta = Param::from_tensor(Tensor::random([c], Distribution::Normal(0.0, 1.0), device));
+        bn.running_mean = burn::module::RunningState::new(Tensor::random(
+            [c],
+            Distribution::Normal(0.0, 1.0),
+            device,
+        ));
+        bn.running_var = burn::module::RunningState::new(Tensor::random([c], d, device));
+        bn
+    }
+
+    /// (cin, cout, k, stride, dilation, padding (t, l, b, r), bias, h, w)
+    type Case = (
+        usize,
+        usize,
+        usize,
+        usize,
+        usize,
+        [usize; 4],
+        bool,
+        usize,
+        usize,
+    );
+
+    #[test]
+    fn fused_host_conv_equals_burn_conv_bn_relu() {
+        let device = Default::default();
+        <B as Backend>::seed(&device, 7);
+        let cases: [Case; 6] = [
+            (3, 8, 7, 2, 1, [3, 3, 3, 3], false, 23, 30), // ResNet stem, odd sizes
+            (6, 5, 3, 1, 1, [1, 1, 1, 1], true, 9, 11),   // FPN 3x3 with bias
+            (6, 5, 3, 2, 1, [1, 1, 1, 1], false, 10, 13), // strided 3x3
+            (4, 7, 1, 1, 1, [0, 0, 0, 0], true, 5, 6),    // pointwise (no im2col)
+            (4, 7, 1, 2, 1, [0, 0, 0, 0], false, 7, 9),   // strided 1x1 shortcut
+            (3, 4, 3, 1, 2, [2, 1, 0, 3], false, 8, 9),   // dilated, asymmetric padding
+        ];
+        for (cin, cout, k, s, d, [t, l, b, r], bias, h, w) in cases {
+            let conv = Conv2dConfig::new([cin, cout], [k, k])
+                .with_stride([s, s])
+                .with_dilation([d, d])
+                .with_padding(PaddingConfig2d::Explicit(t, l, b, r))
+                .with_bias(bias)
+                .init::<B>(&device);
+            assert!(
+                host_plan::<B>(&conv).is_some(),
+                "the host path must be taken"
+            );
+            let bn = random_bn(cout, &device);
+            let x = Tensor::<B, 4>::random([2, cin, h, w], Distribution::Normal(0.0, 1.0), &device);
+            let want = reference(&conv, &bn, x.clone());
+            let got = conv_bn(&conv, Some(&bn), x.clone(), true);
+            assert_eq!(got.dims(), want.dims(), "case k{k} s{s} d{d}");
+            let err: f64 = (got - want).abs().max().into_scalar();
+            assert!(err < 1e-10, "case k{k} s{s} d{d}: max |diff| {err}");
+            // Without BN and ReLU: the plain convolution.
+            let got = conv_bn(&conv, None, x.clone(), false);
+            let err: f64 = (got - conv.forward(x)).abs().max().into_scalar();
+            assert!(err < 1e-10, "plain case k{k} s{s} d{d}: max |diff| {err}");
+        }
+    }
+
+    #[test]
+    fn f32_host_conv_matches_f64() {
+        type B32 = NdArray<f32>;
+        let device = Default::default();
+        <B as Backend>::seed(&device, 3);
+        let conv = Conv2dConfig::new([16, 24], [3, 3])
+            .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+            .init::<B>(&device);
+        let bn = random_bn(24, &device);
+        let x = Tensor::<B, 4>::random([1, 16, 12, 17], Distribution::Normal(0.0, 1.0), &device);
+        let want = reference(&conv, &bn, x.clone());
+        let to32 =
+            |t: Tensor<B, 1>| Tensor::<B32, 1>::from_data(t.into_data().convert::<f32>(), &device);
+        let mut conv32 = Conv2dConfig::new([16, 24], [3, 3])
+            .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+            .init::<B32>(&device);
+        conv32.weight = Param::from_tensor(Tensor::from_data(
+            conv.weight.val().into_data().convert::<f32>(),
+            &device,
+        ));
+        conv32.bias = conv
+            .bias
+            .as_ref()
+            .map(|b| Param::from_tensor(to32(b.val())));
+        let mut bn32 = BatchNormConfig::new(24).init::<B32>(&device);
+        bn32.gamma = Param::from_tensor(to32(bn.gamma.val()));
+        bn32.beta = Param::from_tensor(to32(bn.beta.val()));
+        bn32.running_mean = burn::module::RunningState::new(to32(bn.running_mean.value()));
+        bn32.running_var = burn::module::RunningState::new(to32(bn.running_var.value()));
+        let x32 = Tensor::<B32, 4>::from_data(x.into_data().convert::<f32>(), &device);
+        let got = conv_bn(&conv32, Some(&bn32), x32, true);
+        let got = Tensor::<B, 4>::from_data(got.into_data().convert::<f64>(), &device);
+        let err: f64 = (got - want).abs().max().into_scalar();
+        assert!(err < 1e-4, "f32 max |diff| {err}");
+    }
+}
