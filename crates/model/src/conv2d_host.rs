@@ -12,69 +12,13 @@
 //! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with `matrixmultiply` on all
 //! cores. Training (autodiff) and GPU backends take burn's own `Conv2d` and `BatchNorm` forward.
 
-use burn::backend::ndarray::NdArrayTensor;
+use crate::host_data::{is_host_backend, is_host_f32, read, with_host_slice, Elem};
 use burn::nn::conv::Conv2d;
 use burn::nn::{BatchNorm, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
-use occ_sparse::host::HostFloat;
 use rayon::prelude::*;
-
-/// Float types of the host path: [`HostFloat`] plus conversion from the f64 the folding is done in,
-/// and zero-copy access to a burn-ndarray tensor of that type.
-trait Elem:
-    HostFloat
-    + std::ops::Mul<Output = Self>
-    + std::ops::Add<Output = Self>
-    + PartialOrd
-    + burn::tensor::Element
-{
-    fn from_f64(v: f64) -> Self;
-    /// `f(values)` in row-major order, borrowed when the array is already in standard layout; `None`
-    /// when the tensor holds another element type.
-    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R>;
-}
-
-impl Elem for f32 {
-    fn from_f64(v: f64) -> Self {
-        v as f32
-    }
-    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R> {
-        match t {
-            NdArrayTensor::F32(s) => Some(f(s.view().as_standard_layout().as_slice()?)),
-            _ => None,
-        }
-    }
-}
-
-impl Elem for f64 {
-    fn from_f64(v: f64) -> Self {
-        v
-    }
-    fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R> {
-        match t {
-            NdArrayTensor::F64(s) => Some(f(s.view().as_standard_layout().as_slice()?)),
-            _ => None,
-        }
-    }
-}
-
-/// `f(values)` of a tensor of the burn-ndarray backend without going through `TensorData` (whose
-/// conversion iterates element by element when the array is shared, e.g. a parameter or a tensor
-/// also kept for a residual connection).
-fn with_host_slice<B: Backend, const D: usize, T: Elem, R>(
-    x: &Tensor<B, D>,
-    f: impl FnOnce(&[T]) -> R,
-) -> Option<R> {
-    let prim = x.clone().into_primitive().tensor();
-    let nd = (&prim as &dyn std::any::Any).downcast_ref::<NdArrayTensor>()?;
-    T::with_slice(nd, f)
-}
-
-fn read<B: Backend, const D: usize, T: Elem>(t: &Tensor<B, D>) -> Option<Vec<T>> {
-    with_host_slice(t, |s: &[T]| s.to_vec())
-}
 
 /// `relu?(bn?(conv(x)))` — the composition of burn's `Conv2d::forward`, `BatchNorm::forward` and `relu`,
 /// fused on the CPU inference backend (see the module documentation).
@@ -89,26 +33,12 @@ pub fn conv_bn<B: Backend>(
     apply_relu: bool,
 ) -> Tensor<B, 4> {
     if let Some(pads) = host_plan::<B>(conv) {
-        let t = std::any::TypeId::of::<B>();
-        let t0 = std::time::Instant::now();
-        let dims = x.dims();
-        let out = if t == std::any::TypeId::of::<burn::backend::NdArray<f32>>() {
+        let out = if is_host_f32::<B>() {
             host_forward::<B, f32>(conv, bn, &x, pads, apply_relu)
         } else {
             host_forward::<B, f64>(conv, bn, &x, pads, apply_relu)
         };
         if let Some(out) = out {
-            if std::env::var("CONVPROF").is_ok() {
-                let o = out.dims();
-                eprintln!(
-                    "CONVPROF {:?} -> {:?} k{:?} s{:?} {:.1} ms",
-                    dims,
-                    o,
-                    conv.kernel_size,
-                    conv.stride,
-                    t0.elapsed().as_secs_f64() * 1e3
-                );
-            }
             return out;
         }
     }
@@ -127,11 +57,7 @@ pub fn conv_bn<B: Backend>(
 /// Padding `(top, left, bottom, right)` when the host path applies: burn-ndarray f32/f64 without
 /// autodiff, ungrouped convolution, explicit or no padding.
 fn host_plan<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
-    use std::any::TypeId;
-    let t = TypeId::of::<B>();
-    let host = t == TypeId::of::<burn::backend::NdArray<f32>>()
-        || t == TypeId::of::<burn::backend::NdArray<f64>>();
-    if !host || conv.groups != 1 {
+    if !is_host_backend::<B>() || conv.groups != 1 {
         return None;
     }
     match conv.padding {

@@ -262,22 +262,6 @@ pub fn project_queries(
     Ok(hits)
 }
 
-/// Whether [`DeformableCrossAttention::aggregate`] takes the fused host loop: the CPU inference
-/// backends (burn-ndarray without autodiff), whose tensors already live in host memory.
-fn host_kernel_backend<B: Backend>() -> bool {
-    use std::any::TypeId;
-    let t = TypeId::of::<B>();
-    t == TypeId::of::<burn::backend::NdArray<f32>>()
-        || t == TypeId::of::<burn::backend::NdArray<f64>>()
-}
-
-/// Tensor data as f64 values.
-fn host_f64(data: TensorData) -> Result<Vec<f64>, ModelError> {
-    data.convert::<f64>()
-        .to_vec::<f64>()
-        .map_err(|e| ModelError::Input(format!("DCA: cannot read tensor data: {e:?}")))
-}
-
 fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
     occ_sparse::backend::index_tensor::<B>(v, device)
 }
@@ -379,18 +363,20 @@ impl<B: Backend> DeformableCrossAttention<B> {
         feats: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
-        if host_kernel_backend::<B>() {
+        if crate::host_data::is_host_backend::<B>() {
             self.aggregate_host(query, hits, feats, strides)
         } else {
             self.aggregate_tensor_ops(query, hits, feats, strides)
         }
     }
 
-    /// [`Self::aggregate`] as one host loop (f64 arithmetic): per hit, per head, level and point, the
-    /// bilinear sample of the channel-last value map at `(u + 0.5)/s_l − 0.5 + Δp` (zero outside the
-    /// map) weighted by the attention weight; hits summed per query and divided by its number of views.
-    /// The tensors are copied to the host and the result back, so this is meant for host backends;
-    /// it is not differentiable.
+    /// [`Self::aggregate`] as one host loop, parallel over queries: per hit of the query, per head,
+    /// level and point, the bilinear sample of the channel-last value map at
+    /// `(u + 0.5)/s_l − 0.5 + Δp` (zero outside the map) weighted by the attention weight; summed over
+    /// the query's hits and divided by its number of views. Coordinates and bilinear weights are
+    /// computed in f64, the channel sums in the backend's float type (f32 or f64). Tensors are read in
+    /// place (no `TensorData` copies), so this is meant for the burn-ndarray backend; it is not
+    /// differentiable.
     pub fn aggregate_host(
         &self,
         query: Tensor<B, 2>,
@@ -398,71 +384,102 @@ impl<B: Backend> DeformableCrossAttention<B> {
         feats: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
-        use rayon::prelude::*;
         if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
             return Ok(zeros);
         }
+        let out = if crate::host_data::is_host_f32::<B>() {
+            self.aggregate_host_typed::<f32>(query, hits, feats, strides)
+        } else {
+            self.aggregate_host_typed::<f64>(query, hits, feats, strides)
+        };
+        out.ok_or_else(|| {
+            ModelError::Input("DCA: the host loop needs burn-ndarray f32/f64 tensors".into())
+        })
+    }
+
+    fn aggregate_host_typed<T: crate::host_data::Elem>(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> Option<Tensor<B, 2>> {
+        use rayon::prelude::*;
         let device = query.device();
         let [n, d] = query.dims();
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
         let dh = d / m;
         let (offsets, weights) = self.sampling(query);
-        let off = host_f64(offsets.into_data())?;
-        let wts = host_f64(weights.into_data())?;
+        // Freshly computed, unshared tensors: `into_data` hands over their buffers without copying.
+        let off: Vec<T> = offsets.into_data().into_vec().ok()?;
+        let wts: Vec<T> = weights.into_data().into_vec().ok()?;
         // Channel-last value maps `[B·V, h, w, D]` per level (D head-major).
         let mut maps = Vec::with_capacity(l);
         for f in feats {
             let [bv, c, h, w] = f.dims();
             let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-            maps.push((host_f64(self.value_proj.forward(rows).into_data())?, h, w));
+            let map: Vec<T> = self.value_proj.forward(rows).into_data().into_vec().ok()?;
+            maps.push((map, h, w));
         }
-        let mut per_hit = vec![0.0f64; hits.len() * d];
-        per_hit.par_chunks_mut(d).enumerate().for_each(|(hi, acc)| {
-            let q = hits.query[hi] as usize;
-            let img = hits.image[hi] as usize;
-            let [u, v] = hits.uv[hi];
-            for (lvl, ((map, h, w), &s)) in maps.iter().zip(strides).enumerate() {
-                let (h, w) = (*h as i64, *w as i64);
-                let (bx, by) = ((u + 0.5) / s as f64 - 0.5, (v + 0.5) / s as f64 - 0.5);
-                for head in 0..m {
-                    let out = &mut acc[head * dh..(head + 1) * dh];
-                    for j in 0..p {
-                        let k = ((q * m + head) * l + lvl) * p + j;
-                        let (x, y) = (bx + off[2 * k], by + off[2 * k + 1]);
-                        let (x0, y0) = (x.floor(), y.floor());
-                        let (fx, fy) = (x - x0, y - y0);
-                        let (x0, y0) = (x0 as i64, y0 as i64);
-                        for (yy, wy) in [(y0, 1.0 - fy), (y0 + 1, fy)] {
-                            if yy < 0 || yy >= h {
-                                continue;
-                            }
-                            for (xx, wx) in [(x0, 1.0 - fx), (x0 + 1, fx)] {
-                                if xx < 0 || xx >= w {
+        // Hits grouped by query (counting sort), so that each query owns its output row.
+        let mut start = vec![0usize; n + 1];
+        for &q in &hits.query {
+            start[q as usize + 1] += 1;
+        }
+        for q in 0..n {
+            start[q + 1] += start[q];
+        }
+        let mut order = vec![0usize; hits.len()];
+        let mut fill = start.clone();
+        for (hi, &q) in hits.query.iter().enumerate() {
+            order[fill[q as usize]] = hi;
+            fill[q as usize] += 1;
+        }
+        let mut out = vec![T::zero(); n * d];
+        out.par_chunks_mut(d).enumerate().for_each(|(q, acc)| {
+            for &hi in &order[start[q]..start[q + 1]] {
+                let img = hits.image[hi] as usize;
+                let [u, v] = hits.uv[hi];
+                for (lvl, ((map, h, w), &s)) in maps.iter().zip(strides).enumerate() {
+                    let (h, w) = (*h as i64, *w as i64);
+                    let (bx, by) = ((u + 0.5) / s as f64 - 0.5, (v + 0.5) / s as f64 - 0.5);
+                    for head in 0..m {
+                        let out = &mut acc[head * dh..(head + 1) * dh];
+                        for j in 0..p {
+                            let k = ((q * m + head) * l + lvl) * p + j;
+                            let x = bx + off[2 * k].to_f64();
+                            let y = by + off[2 * k + 1].to_f64();
+                            let (x0, y0) = (x.floor(), y.floor());
+                            let (fx, fy) = (x - x0, y - y0);
+                            let (x0, y0) = (x0 as i64, y0 as i64);
+                            let wk = wts[k].to_f64();
+                            for (yy, wy) in [(y0, 1.0 - fy), (y0 + 1, fy)] {
+                                if yy < 0 || yy >= h {
                                     continue;
                                 }
-                                let c = wts[k] * wx * wy;
-                                let row = ((img as i64 * h + yy) * w + xx) as usize * d;
-                                for (o, &val) in out.iter_mut().zip(&map[row + head * dh..]) {
-                                    *o += c * val;
+                                for (xx, wx) in [(x0, 1.0 - fx), (x0 + 1, fx)] {
+                                    if xx < 0 || xx >= w {
+                                        continue;
+                                    }
+                                    let c = T::from_f64(wk * wx * wy);
+                                    let row = ((img as i64 * h + yy) * w + xx) as usize * d;
+                                    let src = &map[row + head * dh..row + (head + 1) * dh];
+                                    for (o, &val) in out.iter_mut().zip(src) {
+                                        *o += c * val;
+                                    }
                                 }
                             }
                         }
                     }
                 }
             }
-        });
-        let mut out = vec![0.0f64; n * d];
-        for (hi, row) in per_hit.chunks_exact(d).enumerate() {
-            let q = hits.query[hi] as usize;
-            for (o, &v) in out[q * d..(q + 1) * d].iter_mut().zip(row) {
-                *o += v;
+            let views = hits.views_per_query[q];
+            if views > 1 {
+                let inv = T::from_f64(1.0 / views as f64);
+                acc.iter_mut().for_each(|o| *o = *o * inv);
             }
-        }
-        for (q, &c) in hits.views_per_query.iter().enumerate() {
-            let inv = if c == 0 { 0.0 } else { 1.0 / c as f64 };
-            out[q * d..(q + 1) * d].iter_mut().for_each(|o| *o *= inv);
-        }
-        Ok(Tensor::from_data(TensorData::new(out, [n, d]), &device))
+        });
+        Some(Tensor::from_data(TensorData::new(out, [n, d]), &device))
     }
 
     /// [`Self::aggregate`] composed of burn tensor ops (differentiable; any backend): the hits are

@@ -14,6 +14,7 @@ pub mod dca;
 pub mod dense_baseline;
 pub mod error;
 pub mod fpn;
+mod host_data;
 pub mod hungarian;
 pub mod loss;
 pub mod lss;
