@@ -35,6 +35,28 @@ pub trait HostFloat: Copy + Send + Sync + Default + std::ops::AddAssign + 'stati
     fn zero() -> Self;
     /// Multiplicative identity.
     fn one() -> Self;
+    /// The weight packed for [`HostFloat::fused_pairs`] (`[K][C_in][C_out]`) when the fused
+    /// gather-multiply-scatter kernel exists for this type, these widths and this CPU.
+    fn fused_plan(_w: &[Self], _wv: WeightView) -> Option<Vec<Self>> {
+        None
+    }
+    /// `y[o - o0] += x[i] · wk` over the pairs (see [`crate::fused`]).
+    ///
+    /// # Safety
+    /// Only after [`HostFloat::fused_plan`] returned `Some`; slices as in `fused::pairs_into_block`.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn fused_pairs(
+        _x: &[Self],
+        _cin: usize,
+        _wk: &[Self],
+        _cout: usize,
+        _ins: &[u32],
+        _outs: &[u32],
+        _o0: u32,
+        _yblock: &mut [Self],
+    ) {
+        unreachable!("no fused kernel for this type")
+    }
 }
 
 impl HostFloat for f32 {
@@ -60,6 +82,23 @@ impl HostFloat for f32 {
     }
     fn one() -> Self {
         1.0
+    }
+    fn fused_plan(w: &[f32], wv: WeightView) -> Option<Vec<f32>> {
+        (wv.cin() > 0 && crate::fused::available(wv.cout()))
+            .then(|| crate::fused::pack_weight(w, wv))
+    }
+    unsafe fn fused_pairs(
+        x: &[f32],
+        cin: usize,
+        wk: &[f32],
+        cout: usize,
+        ins: &[u32],
+        outs: &[u32],
+        o0: u32,
+        yblock: &mut [f32],
+    ) {
+        // SAFETY: forwarded contract.
+        unsafe { crate::fused::pairs_into_block(x, cin, wk, cout, ins, outs, o0, yblock) }
     }
 }
 
@@ -106,14 +145,14 @@ pub struct WeightView {
 }
 
 impl WeightView {
-    fn cin(&self) -> usize {
+    pub(crate) fn cin(&self) -> usize {
         if self.transposed {
             self.d0
         } else {
             self.d2
         }
     }
-    fn cout(&self) -> usize {
+    pub(crate) fn cout(&self) -> usize {
         if self.transposed {
             self.d2
         } else {
@@ -121,7 +160,7 @@ impl WeightView {
         }
     }
     /// Pointer offset and (row, col) strides of offset `k`'s `[cin, cout]` matrix.
-    fn slice(&self, k: usize) -> (usize, isize, isize) {
+    pub(crate) fn slice(&self, k: usize) -> (usize, isize, isize) {
         let s0 = (self.k * self.d2) as isize; // stride of d0
         let s2 = 1isize; // stride of d2
         let base = k * self.d2;
@@ -143,7 +182,32 @@ fn block_rows(n_out: usize, cout: usize) -> usize {
 }
 
 /// `y = conv(x, w)` over `map` on the host. `x` is `[n_in, cin]` row-major; returns `[n_out, cout]`.
+///
+/// Offsets whose pairs are not the identity go through the fused gather-multiply-scatter kernel
+/// ([`crate::fused`]) where it exists (f32, AVX2 + FMA, `C_out` a multiple of 16), else through a
+/// gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
 pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &KernelMap) -> Vec<F> {
+    conv_forward_impl(x, w, wv, map, F::fused_plan(w, wv))
+}
+
+/// [`conv_forward`] without the fused kernel: gather, GEMM, scatter-add for every offset (for
+/// tests and A/B benchmarks of the two paths).
+pub fn conv_forward_gemm<F: HostFloat>(
+    x: &[F],
+    w: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+) -> Vec<F> {
+    conv_forward_impl(x, w, wv, map, None)
+}
+
+fn conv_forward_impl<F: HostFloat>(
+    x: &[F],
+    w: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+    packed: Option<Vec<F>>,
+) -> Vec<F> {
     let (cin, cout) = (wv.cin(), wv.cout());
     let n_out = map.n_out();
     let mut y = vec![F::zero(); n_out * cout];
@@ -191,6 +255,12 @@ pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &Kernel
                             1,
                         );
                     }
+                    continue;
+                }
+                if let Some(p) = &packed {
+                    let wk = &p[k * cin * cout..(k + 1) * cin * cout];
+                    // SAFETY: `fused_plan` returned Some; every pair indexes x and the block.
+                    unsafe { F::fused_pairs(x, cin, wk, cout, ins, outs, o0, yblock) };
                     continue;
                 }
                 gbuf.clear();
