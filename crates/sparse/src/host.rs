@@ -84,8 +84,7 @@ impl HostFloat for f32 {
         1.0
     }
     fn fused_plan(w: &[f32], wv: WeightView) -> Option<Vec<f32>> {
-        (wv.cin() > 0 && crate::fused::available(wv.cout()))
-            .then(|| crate::fused::pack_weight(w, wv))
+        crate::fused::available(wv.cin(), wv.cout()).then(|| crate::fused::pack_weight(w, wv))
     }
     unsafe fn fused_pairs(
         x: &[f32],
@@ -184,8 +183,8 @@ fn block_rows(n_out: usize, cout: usize) -> usize {
 /// `y = conv(x, w)` over `map` on the host. `x` is `[n_in, cin]` row-major; returns `[n_out, cout]`.
 ///
 /// Offsets whose pairs are not the identity go through the fused gather-multiply-scatter kernel
-/// ([`crate::fused`]) where it exists (f32, AVX2 + FMA, `C_out` a multiple of 16), else through a
-/// gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
+/// ([`crate::fused`]) where it exists (f32, AVX2 + FMA, `C_out` a multiple of 16, `C_in·C_out` ≤ 8192),
+/// else through a gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
 pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &KernelMap) -> Vec<F> {
     conv_forward_impl(x, w, wv, map, F::fused_plan(w, wv))
 }
