@@ -11,6 +11,8 @@
 //! the weight slice fits the L1 cache ([`available`]); otherwise the blocked GEMM path runs. Both
 //! compute the same sums (in a different order).
 
+use crate::host::OffsetPairs;
+
 /// Weight slices packed per kernel offset as `[K][C_in][C_out]` (row-major over `C_out`).
 pub(crate) fn pack_weight(w: &[f32], wv: crate::host::WeightView) -> Vec<f32> {
     let (cin, cout) = (wv.cin(), wv.cout());
@@ -51,49 +53,40 @@ pub(crate) fn available(cin: usize, cout: usize) -> bool {
     }
 }
 
-/// `y[o - o0] += x[i] · wk` for every pair `(i, o)` of `ins`/`outs`.
+/// `y[o - o0] += x[i] · wk` for every pair `(i, o)` of the offset.
 ///
 /// # Safety
-/// [`available`]`(cout)` must hold; `x` holds `[n_in, cin]` covering every `i`, `wk` is `[cin, cout]`,
-/// `yblock` is `[rows, cout]` covering every `o - o0`.
-#[allow(clippy::too_many_arguments)]
-pub(crate) unsafe fn pairs_into_block(
-    x: &[f32],
-    cin: usize,
-    wk: &[f32],
-    cout: usize,
-    ins: &[u32],
-    outs: &[u32],
-    o0: u32,
-    yblock: &mut [f32],
-) {
+/// [`available`]`(cin, cout)` must hold; the slices as documented on [`OffsetPairs`].
+pub(crate) unsafe fn pairs_into_block(pairs: &OffsetPairs<'_, f32>, yblock: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the caller checked the CPU features through `available`.
     unsafe {
-        pairs_avx2::<4, 16>(x, cin, wk, cout, ins, outs, o0, yblock)
+        pairs_avx2::<4, 16>(pairs, yblock)
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = (x, cin, wk, cout, ins, outs, o0, yblock);
+        let _ = (pairs, yblock);
         unreachable!("fused::available is false off x86-64")
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
 /// `R` pairs × `T` output channels per register tile: 8 accumulator vectors; 4 × 16 measured faster
 /// than 2 × 32, 3 × 32 (equal), 6 × 16 and 4 × 32 (register spills) on the C = 64 benchmark case.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn pairs_avx2<const R: usize, const T: usize>(
-    x: &[f32],
-    cin: usize,
-    wk: &[f32],
-    cout: usize,
-    ins: &[u32],
-    outs: &[u32],
-    o0: u32,
+    pairs: &OffsetPairs<'_, f32>,
     yblock: &mut [f32],
 ) {
+    let OffsetPairs {
+        x,
+        cin,
+        wk,
+        cout,
+        ins,
+        outs,
+        o0,
+    } = *pairs;
     let m = ins.len().min(outs.len());
     let row = |i: u32| &x[i as usize * cin..(i as usize + 1) * cin];
     let mut p = 0;

@@ -43,18 +43,8 @@ pub trait HostFloat: Copy + Send + Sync + Default + std::ops::AddAssign + 'stati
     /// `y[o - o0] += x[i] · wk` over the pairs (see [`crate::fused`]).
     ///
     /// # Safety
-    /// Only after [`HostFloat::fused_plan`] returned `Some`; slices as in `fused::pairs_into_block`.
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn fused_pairs(
-        _x: &[Self],
-        _cin: usize,
-        _wk: &[Self],
-        _cout: usize,
-        _ins: &[u32],
-        _outs: &[u32],
-        _o0: u32,
-        _yblock: &mut [Self],
-    ) {
+    /// Only after [`HostFloat::fused_plan`] returned `Some`; slices as documented on [`OffsetPairs`].
+    unsafe fn fused_pairs(_pairs: &OffsetPairs<'_, Self>, _yblock: &mut [Self]) {
         unreachable!("no fused kernel for this type")
     }
 }
@@ -86,18 +76,9 @@ impl HostFloat for f32 {
     fn fused_plan(w: &[f32], wv: WeightView) -> Option<Vec<f32>> {
         crate::fused::available(wv.cin(), wv.cout()).then(|| crate::fused::pack_weight(w, wv))
     }
-    unsafe fn fused_pairs(
-        x: &[f32],
-        cin: usize,
-        wk: &[f32],
-        cout: usize,
-        ins: &[u32],
-        outs: &[u32],
-        o0: u32,
-        yblock: &mut [f32],
-    ) {
+    unsafe fn fused_pairs(pairs: &OffsetPairs<'_, f32>, yblock: &mut [f32]) {
         // SAFETY: forwarded contract.
-        unsafe { crate::fused::pairs_into_block(x, cin, wk, cout, ins, outs, o0, yblock) }
+        unsafe { crate::fused::pairs_into_block(pairs, yblock) }
     }
 }
 
@@ -125,6 +106,25 @@ impl HostFloat for f64 {
     fn one() -> Self {
         1.0
     }
+}
+
+/// One kernel offset's pairs inside an output block, as the fused kernel reads them.
+#[derive(Clone, Copy, Debug)]
+pub struct OffsetPairs<'a, F> {
+    /// Input features `[n_in, cin]`, row-major, covering every index in `ins`.
+    pub x: &'a [F],
+    /// Input channels.
+    pub cin: usize,
+    /// The offset's weight slice `[cin, cout]`, row-major.
+    pub wk: &'a [F],
+    /// Output channels.
+    pub cout: usize,
+    /// Input row of each pair.
+    pub ins: &'a [u32],
+    /// Output row of each pair (`o - o0` indexes the block `[rows, cout]`).
+    pub outs: &'a [u32],
+    /// First output row of the block.
+    pub o0: u32,
 }
 
 /// How the weight `[D0, K, D2]` is applied.
@@ -257,9 +257,17 @@ fn conv_forward_impl<F: HostFloat>(
                     continue;
                 }
                 if let Some(p) = &packed {
-                    let wk = &p[k * cin * cout..(k + 1) * cin * cout];
+                    let pairs = OffsetPairs {
+                        x,
+                        cin,
+                        wk: &p[k * cin * cout..(k + 1) * cin * cout],
+                        cout,
+                        ins,
+                        outs,
+                        o0,
+                    };
                     // SAFETY: `fused_plan` returned Some; every pair indexes x and the block.
-                    unsafe { F::fused_pairs(x, cin, wk, cout, ins, outs, o0, yblock) };
+                    unsafe { F::fused_pairs(&pairs, yblock) };
                     continue;
                 }
                 gbuf.clear();
