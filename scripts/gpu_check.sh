@@ -2,35 +2,58 @@
 # GPU checks in one go, for a machine with an NVIDIA GPU (H100 in the reference runs):
 #   1. `sparseocc check-backend`: sparse convolutions (forward and gradients), the image encoder and a
 #      SparseOcc++ forward pass on CUDA against the NdArray CPU reference;
-#   2. `sparseocc bench`: SparseOcc++ at the full SemanticKITTI setting (384x1280, ResNet-50, FP32,
-#      batch 1) with the per-stage profile, then the three models side by side, then the memory scan.
+#   2. one traced SparseOcc++ pass at the full SemanticKITTI setting (384x1280, ResNet-50, FP32,
+#      batch 1; `SPARSEOCC_TRACE=1` prints every stage and U-Net level as it finishes, so a slow
+#      first pass — kernel compilation, autotuning — shows where it is);
+#   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, then the three
+#      models side by side, then (SCAN=1) the memory scan.
+# Every step has its own time limit (seconds, overridable) so that one slow step still leaves the
+# others' results.
 #
 # Usage: scripts/gpu_check.sh [OUT_DIR]
 # With SPARSEOCC_BIN set, uses that binary (built elsewhere with `--features cuda`, e.g. on a CPU-only
 # machine: CUDARC_CUDA_VERSION=13000 cargo build --release -p sparseocc --features cuda); otherwise
 # builds one here with cargo.
-set -euo pipefail
+set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-gpu_check_out}
 FRAMES=${FRAMES:-20}
+CFG=${CFG:-configs/semantickitti_sparseocc_pp.toml}
+T_CHECK=${T_CHECK:-90}
+T_TRACE=${T_TRACE:-180}
+T_BENCH=${T_BENCH:-150}
+T_ALL=${T_ALL:-150}
+T_SCAN=${T_SCAN:-120}
 mkdir -p "$OUT"
 BIN=${SPARSEOCC_BIN:-}
 if [ -z "$BIN" ]; then
-  CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000} cargo build --release -p sparseocc --features cuda
+  CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000} cargo build --release -p sparseocc --features cuda || exit 1
   BIN=${CARGO_TARGET_DIR:-target}/release/sparseocc
 fi
+step() { # name, limit, command...
+  local name=$1 limit=$2
+  shift 2
+  echo "== $name (limit ${limit} s)"
+  local t0=$SECONDS
+  timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
+  local rc=$?
+  tail -n 25 "$OUT/$name.log"
+  echo "== $name: rc $rc, $((SECONDS - t0)) s"
+}
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$OUT/gpu.txt"
-echo "== check-backend"
-"$BIN" check-backend --json "$OUT/check_backend.json" 2>&1 | tee "$OUT/check_backend.log"
-echo "== SparseOcc++, SemanticKITTI setting"
-"$BIN" bench --config configs/semantickitti_sparseocc_pp.toml --models sparseocc++ \
-  --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp.json" 2>&1 | tee "$OUT/bench_pp.log"
-echo "== three models, same input"
-"$BIN" bench --config configs/semantickitti_sparseocc_pp.toml --models sparseocc++,sparseocc,dense \
-  --frames 5 --warmup 2 --json "$OUT/bench_all.json" 2>&1 | tee "$OUT/bench_all.log"
-if [ "${SCAN:-1}" = 1 ]; then
-  echo "== memory scan"
-  "$BIN" bench --config configs/semantickitti_sparseocc_pp.toml --models sparseocc++,sparseocc,dense \
-    --frames 1 --warmup 1 --scan "$OUT/memory_scan" 2>&1 | tail -3 | tee "$OUT/scan.log"
+step check_backend "$T_CHECK" "$BIN" check-backend --json "$OUT/check_backend.json"
+if [ "${TRACE:-1}" = 1 ]; then
+  step trace_pp "$T_TRACE" env SPARSEOCC_TRACE=1 "$BIN" bench --config "$CFG" --models sparseocc++ \
+    --frames 1 --warmup 1
+fi
+step bench_pp "$T_BENCH" "$BIN" bench --config "$CFG" --models sparseocc++ \
+  --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp.json"
+if [ "${ALL:-1}" = 1 ]; then
+  step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
+    --frames 3 --warmup 1 --json "$OUT/bench_all.json"
+fi
+if [ "${SCAN:-0}" = 1 ]; then
+  step memory_scan "$T_SCAN" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
+    --frames 1 --warmup 1 --scan "$OUT/memory_scan"
 fi
 echo "results in $OUT"

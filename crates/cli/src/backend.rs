@@ -7,7 +7,7 @@ use burn::backend::Autodiff;
 pub type Infer = burn::backend::NdArray<f32>;
 /// Inference backend.
 #[cfg(feature = "cuda")]
-pub type Infer = burn::backend::Cuda;
+pub type Infer = burn_cuda::Cuda;
 
 /// Training backend.
 pub type Train = Autodiff<Infer>;
@@ -20,7 +20,14 @@ pub fn device() -> burn::tensor::Device<Infer> {
 /// Human-readable device and precision, for logs and benchmark tables.
 pub fn describe() -> String {
     if cfg!(feature = "cuda") {
-        "CUDA device 0 (burn-cuda), fp32".to_string()
+        format!(
+            "CUDA device 0 (burn-cuda), fp32, cubecl autotune {}",
+            if cfg!(feature = "cuda-autotune") {
+                "on"
+            } else {
+                "off"
+            }
+        )
     } else {
         format!(
             "CPU, burn-ndarray, {} rayon threads, fp32",

@@ -401,6 +401,7 @@ impl<B: Backend> AnchorGenerator<B> {
                     let n = coords.len();
                     let (x, mut pred) =
                         self.run_stage(&self.stages[r], r, coords, feats, images, strides, batch)?;
+                    crate::profile::trace_mark(&format!("anchors level {r}"), &x);
                     let scores = occupancy_score(&pred.logits);
                     let kept = topk_per_batch(&scores, &pred.coords, self.keep_ratios[r]);
                     stats.push((format!("anchor_l{r}_candidates"), n));

@@ -577,6 +577,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
         let attn = self.aggregate(feats.clone() + pos, hits, images, strides)?;
+        crate::profile::trace_mark("dca sampling", &attn);
         let x = self.norm1.forward(feats + self.output_proj.forward(attn));
         let y = self.ffn2.forward(relu(self.ffn1.forward(x.clone())));
         Ok(self.norm2.forward(x + y))

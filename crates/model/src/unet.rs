@@ -164,9 +164,11 @@ impl<B: SparseConvBackend> SparseUNet<B> {
         let mut skips = Vec::with_capacity(levels);
         for (i, block) in self.blocks.iter().enumerate() {
             x = block.forward(x)?;
+            crate::profile::trace_mark(&format!("unet block {i}"), x.feats());
             if i + 1 < levels {
                 skips.push(x.clone());
                 x = self.down[i].forward(x)?;
+                crate::profile::trace_mark(&format!("unet down {i}"), x.feats());
             }
         }
         for i in (0..levels.saturating_sub(1)).rev() {
@@ -175,6 +177,7 @@ impl<B: SparseConvBackend> SparseUNet<B> {
                 .pop()
                 .ok_or_else(|| ModelError::Config("U-Net: decoder level without a skip".into()))?;
             x = occ_sparse::ops::add(&skip, &x)?;
+            crate::profile::trace_mark(&format!("unet up {i}"), x.feats());
         }
         Ok(x)
     }

@@ -1,7 +1,9 @@
 //! The sparse-convolution compute op, as a burn backend extension with its own backward pass.
 //!
-//! `SparseConvBackend` has a portable default implementation built from burn tensor ops (select, matmul,
-//! select_add) that runs on every backend (CUDA included). The `NdArray` backend overrides it with the
+//! `SparseConvBackend` has a portable default implementation built from burn tensor ops that runs on
+//! every backend (CUDA included): an implicit GEMM (one gather of the K neighbour rows of every output,
+//! one matrix product), or per kernel offset gather, matmul and index-add for maps without a gather
+//! table. The `NdArray` backend overrides it with the
 //! blocked host GEMM of [`crate::host`], and `Autodiff<B>` wraps either with an explicit backward pass:
 //! `dx = conv(dy, w, map^T, transposed weight)` and `dw = weight_grad(x, dy, map)`.
 
@@ -27,13 +29,105 @@ fn unwrap<B: Backend, const D: usize>(t: Tensor<B, D>) -> FloatTensor<B> {
 }
 
 /// Index tensor on a device from host row indices.
+/// Built directly in the backend's integer type when it is 32-bit (CUDA), to upload half the bytes and
+/// skip a conversion pass.
 pub fn index_tensor<B: Backend>(idx: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
-    let v: Vec<i64> = idx.iter().map(|&i| i as i64).collect();
-    Tensor::from_data(TensorData::new(v, [idx.len()]), device)
+    use burn::tensor::Element;
+    let data = if <B::IntElem as Element>::dtype() == DType::I32 {
+        let v: Vec<i32> = idx.iter().map(|&i| i as i32).collect();
+        TensorData::new(v, [idx.len()])
+    } else {
+        let v: Vec<i64> = idx.iter().map(|&i| i as i64).collect();
+        TensorData::new(v, [idx.len()])
+    };
+    Tensor::from_data(data, device)
 }
 
-/// Portable forward: per kernel offset, gather rows, multiply by the offset's weight slice, index-add.
+/// Most elements of one gathered `[rows, K·C_in]` block of the implicit GEMM (512 MiB of f32);
+/// larger outputs are processed in row chunks.
+const IMPLICIT_GEMM_MAX_ELEMS: usize = 1 << 27;
+
+/// The weight as one `[K·C_in, C_out]` matrix (offset-major rows), the right operand of the
+/// implicit GEMM.
+fn weight_matrix<B: Backend>(w: Tensor<B, 3>, transposed: bool) -> Tensor<B, 2> {
+    let [d0, kv, d2] = w.dims();
+    if transposed {
+        // [C_in, K, C_out] -> [K, C_in, C_out]
+        w.swap_dims(0, 1).reshape([kv * d0, d2])
+    } else {
+        // [C_out, K, C_in] -> [K, C_in, C_out]
+        w.permute([1, 2, 0]).reshape([kv * d2, d0])
+    }
+}
+
+/// Row chunks `(start, end)` of an implicit GEMM over `rows` outputs with `width = K·C_in`.
+fn row_chunks(rows: usize, width: usize, max_elems: usize) -> impl Iterator<Item = (usize, usize)> {
+    let step = (max_elems / width.max(1)).max(1);
+    (0..rows)
+        .step_by(step)
+        .map(move |a| (a, (a + step).min(rows)))
+}
+
+/// `x` with one zero row appended (row `n_in`, the target of absent neighbours in the gather table).
+fn with_zero_row<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
+    let [_, c] = x.dims();
+    let device = x.device();
+    Tensor::cat(vec![x, Tensor::zeros([1, c], &device)], 0)
+}
+
+/// Portable forward (any backend; the one GPU backends use). As an implicit GEMM when the map has a
+/// [`KernelMap::gather_table`]: one gather of every output row's K neighbour rows into
+/// `[n_out, K·C_in]` (absent neighbours read a zero row) and one matrix product with the
+/// `[K·C_in, C_out]` weight, in row chunks of at most 2^27 gathered values — a handful of launches
+/// per layer whatever the kernel volume, no scatter. Otherwise [`conv_forward_per_offset`].
 pub fn conv_forward_portable<B: Backend>(
+    x: Tensor<B, 2>,
+    w: Tensor<B, 3>,
+    map: &KernelMap,
+    transposed: bool,
+) -> Tensor<B, 2> {
+    conv_forward_portable_chunked(x, w, map, transposed, IMPLICIT_GEMM_MAX_ELEMS)
+}
+
+/// [`conv_forward_portable`] with gathered blocks of at most `max_elems` values.
+pub fn conv_forward_portable_chunked<B: Backend>(
+    x: Tensor<B, 2>,
+    w: Tensor<B, 3>,
+    map: &KernelMap,
+    transposed: bool,
+    max_elems: usize,
+) -> Tensor<B, 2> {
+    let Some(table) = map.gather_table() else {
+        return conv_forward_per_offset(x, w, map, transposed);
+    };
+    let device = x.device();
+    let [_, cin] = x.dims();
+    let kv = map.kernel_volume();
+    let wm = weight_matrix(w, transposed);
+    let [_, cout] = wm.dims();
+    let n_out = map.n_out();
+    if n_out == 0 || map.num_pairs() == 0 {
+        return Tensor::zeros([n_out, cout], &device);
+    }
+    let xp = with_zero_row(x);
+    let mut parts = Vec::new();
+    for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
+        let g = xp
+            .clone()
+            .select(0, index_tensor::<B>(&table[a * kv..b * kv], &device))
+            .reshape([b - a, kv * cin]);
+        parts.push(g.matmul(wm.clone()));
+    }
+    if parts.len() == 1 {
+        parts.pop().expect("one part")
+    } else {
+        Tensor::cat(parts, 0)
+    }
+}
+
+/// Portable forward, one gather, matrix product and index-add per kernel offset (the fallback for
+/// maps without a gather table).
+pub fn conv_forward_per_offset<B: Backend>(
     x: Tensor<B, 2>,
     w: Tensor<B, 3>,
     map: &KernelMap,
@@ -61,8 +155,62 @@ pub fn conv_forward_portable<B: Backend>(
     y
 }
 
-/// Portable weight gradient, `[d0, K, d2]`.
+/// Portable weight gradient, `[d0, K, d2]`: with a gather table, `Σ_chunks G^T dy` over the same
+/// `[rows, K·C_in]` gathers as [`conv_forward_portable`] (one product per chunk); otherwise
+/// [`conv_weight_grad_per_offset`].
 pub fn conv_weight_grad_portable<B: Backend>(
+    x: Tensor<B, 2>,
+    dy: Tensor<B, 2>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> Tensor<B, 3> {
+    conv_weight_grad_portable_chunked(x, dy, map, wshape, transposed, IMPLICIT_GEMM_MAX_ELEMS)
+}
+
+/// [`conv_weight_grad_portable`] with gathered blocks of at most `max_elems` values.
+pub fn conv_weight_grad_portable_chunked<B: Backend>(
+    x: Tensor<B, 2>,
+    dy: Tensor<B, 2>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+    max_elems: usize,
+) -> Tensor<B, 3> {
+    let Some(table) = map.gather_table() else {
+        return conv_weight_grad_per_offset(x, dy, map, wshape, transposed);
+    };
+    let device = x.device();
+    let [d0, kv, d2] = wshape;
+    let [_, cin] = x.dims();
+    let [_, cout] = dy.dims();
+    let n_out = map.n_out();
+    if n_out == 0 || map.num_pairs() == 0 {
+        return Tensor::zeros(wshape, &device);
+    }
+    let xp = with_zero_row(x);
+    let mut dw: Option<Tensor<B, 2>> = None;
+    for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
+        let g = xp
+            .clone()
+            .select(0, index_tensor::<B>(&table[a * kv..b * kv], &device))
+            .reshape([b - a, kv * cin]);
+        let part = g.transpose().matmul(dy.clone().slice([a..b, 0..cout]));
+        dw = Some(match dw {
+            Some(acc) => acc + part,
+            None => part,
+        });
+    }
+    let dw = dw.expect("n_out > 0").reshape([kv, cin, cout]);
+    if transposed {
+        dw.swap_dims(0, 1).reshape([d0, kv, d2]) // [C_in, K, C_out]
+    } else {
+        dw.permute([2, 0, 1]).reshape([d0, kv, d2]) // [C_out, K, C_in]
+    }
+}
+
+/// Portable weight gradient, one pair of gathers and a product per kernel offset, `[d0, K, d2]`.
+pub fn conv_weight_grad_per_offset<B: Backend>(
     x: Tensor<B, 2>,
     dy: Tensor<B, 2>,
     map: &KernelMap,
@@ -325,7 +473,7 @@ where
 }
 
 #[cfg(feature = "cuda")]
-impl SparseConvBackend for burn::backend::Cuda {}
+impl SparseConvBackend for burn_cuda::Cuda {}
 
 #[derive(Debug)]
 struct SparseConvBackwardOp;

@@ -157,6 +157,7 @@ pub struct KernelMap {
     offset_start: Vec<usize>,
     build_ms: f64,
     transposed: OnceLock<Arc<KernelMap>>,
+    gather_table: OnceLock<Option<Vec<u32>>>,
 }
 
 impl KernelMap {
@@ -191,6 +192,7 @@ impl KernelMap {
             offset_start,
             build_ms: 0.0,
             transposed: OnceLock::new(),
+            gather_table: OnceLock::new(),
         })
     }
 
@@ -228,6 +230,31 @@ impl KernelMap {
         }
         c
     }
+    /// The input row of every (output row, kernel offset), row-major `[n_out, K]`, with `n_in` where
+    /// the offset has no input: the layout of an implicit GEMM (one gather of `[n_out, K·C_in]`,
+    /// one matrix product), used by the portable compute path. `None` when some output row has two
+    /// inputs at the same offset (possible only for maps built with [`KernelMap::from_pairs`]).
+    /// Computed once and cached.
+    pub fn gather_table(&self) -> Option<&[u32]> {
+        self.gather_table
+            .get_or_init(|| {
+                let kv = self.kernel_volume;
+                let mut table = vec![self.n_in as u32; self.n_out * kv];
+                for k in 0..kv {
+                    let (ins, outs) = self.pairs(k);
+                    for (&i, &o) in ins.iter().zip(outs) {
+                        let slot = &mut table[o as usize * kv + k];
+                        if *slot != self.n_in as u32 {
+                            return None;
+                        }
+                        *slot = i;
+                    }
+                }
+                Some(table)
+            })
+            .as_deref()
+    }
+
     /// The map with inputs and outputs swapped (same offset numbering), sorted by its new output rows.
     /// Used by gradients and by inverse convolution. Computed once and cached.
     pub fn transposed(&self) -> Arc<KernelMap> {
@@ -256,6 +283,7 @@ impl KernelMap {
                     offset_start,
                     build_ms: t0.elapsed().as_secs_f64() * 1e3,
                     transposed: OnceLock::new(),
+                    gather_table: OnceLock::new(),
                 })
             })
             .clone()
@@ -585,6 +613,7 @@ fn assemble(
         offset_start,
         build_ms: t0.elapsed().as_secs_f64() * 1e3,
         transposed: OnceLock::new(),
+        gather_table: OnceLock::new(),
     }
 }
 

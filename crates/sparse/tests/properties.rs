@@ -7,9 +7,14 @@ use burn::backend::NdArray;
 use burn::prelude::*;
 use burn::tensor::TensorData;
 use common::*;
-use occ_sparse::backend::{conv_forward_portable, conv_weight_grad_portable};
+use occ_sparse::backend::{
+    conv_forward_per_offset, conv_forward_portable, conv_forward_portable_chunked,
+    conv_weight_grad_per_offset, conv_weight_grad_portable, conv_weight_grad_portable_chunked,
+};
 use occ_sparse::conv::sparse_conv3d;
-use occ_sparse::kernel_map::{build_regular, build_submanifold, conv_map, inverse_of, MapKind};
+use occ_sparse::kernel_map::{
+    build_regular, build_submanifold, conv_map, inverse_of, KernelMap, MapKind,
+};
 use occ_sparse::{
     host, ops, ConvGeometry, ConvKind, CoordSet, SparseConv3dConfig, SparseError,
     SparseMaxPool3dConfig, SparseTensor,
@@ -193,19 +198,78 @@ fn finite_difference_gradients() {
         let dev = Default::default();
         let xt = Tensor::<Inner, 2>::from_data(TensorData::new(xv.clone(), [n, cin]), &dev);
         let wt = Tensor::<Inner, 3>::from_data(TensorData::new(wv.clone(), [cout, kv, cin]), &dev);
-        let yp = to_vec_inner(conv_forward_portable(xt.clone(), wt, &map, false));
+        // Both forms: the implicit GEMM (gather table) and the per-offset fallback.
+        assert!(map.gather_table().is_some());
         let yh = host::conv_forward(&xv, &wv, wview, &map);
-        assert!(max_abs_diff(&yp, &yh) < 1e-12);
         let rt = Tensor::<Inner, 2>::from_data(TensorData::new(rv.clone(), [m, cout]), &dev);
+        let yp = to_vec_inner(conv_forward_portable(xt.clone(), wt.clone(), &map, false));
+        assert!(
+            max_abs_diff(&yp, &yh) < 1e-12,
+            "{kind:?} implicit GEMM forward"
+        );
+        let yo = to_vec_inner(conv_forward_per_offset(xt.clone(), wt.clone(), &map, false));
+        assert!(
+            max_abs_diff(&yo, &yh) < 1e-12,
+            "{kind:?} per-offset forward"
+        );
+        let ws = [cout, kv, cin];
         let dwp = to_vec_inner(conv_weight_grad_portable(
-            xt,
-            rt,
+            xt.clone(),
+            rt.clone(),
             &map,
-            [cout, kv, cin],
+            ws,
             false,
         ));
-        assert!(max_abs_diff(&dwp, &dw) < 1e-12);
+        assert!(max_abs_diff(&dwp, &dw) < 1e-12, "{kind:?} implicit GEMM dw");
+        let dwo = to_vec_inner(conv_weight_grad_per_offset(
+            xt.clone(),
+            rt.clone(),
+            &map,
+            ws,
+            false,
+        ));
+        assert!(max_abs_diff(&dwo, &dw) < 1e-12, "{kind:?} per-offset dw");
+        // dx through the transposed map and transposed weight view, as the autodiff backward does.
+        let dxp = to_vec_inner(conv_forward_portable(
+            rt.clone(),
+            wt.clone(),
+            &map.transposed(),
+            true,
+        ));
+        assert!(max_abs_diff(&dxp, &dx) < 1e-12, "{kind:?} implicit GEMM dx");
+        // In row chunks (7 output rows per gathered block here).
+        let lim = 7 * kv * cin;
+        let yc = to_vec_inner(conv_forward_portable_chunked(
+            xt.clone(),
+            wt,
+            &map,
+            false,
+            lim,
+        ));
+        assert!(max_abs_diff(&yc, &yh) < 1e-12, "{kind:?} chunked forward");
+        let dwc = to_vec_inner(conv_weight_grad_portable_chunked(
+            xt, rt, &map, ws, false, lim,
+        ));
+        assert!(max_abs_diff(&dwc, &dw) < 1e-12, "{kind:?} chunked dw");
     }
+}
+
+/// A map with two inputs at the same (output row, offset) has no gather table; the portable path
+/// then takes the per-offset form and still sums both.
+#[test]
+fn portable_path_without_gather_table() {
+    type Inner = NdArray<f64>;
+    let map =
+        KernelMap::from_pairs(3, 2, vec![(vec![0, 1], vec![0, 0]), (vec![2], vec![1])]).unwrap();
+    assert!(map.gather_table().is_none());
+    let dev = Default::default();
+    let x = Tensor::<Inner, 2>::from_data(TensorData::new(vec![1.0, 2.0, 4.0], [3, 1]), &dev);
+    let w = Tensor::<Inner, 3>::from_data(TensorData::new(vec![10.0, 100.0], [1, 2, 1]), &dev);
+    let y = to_vec_inner(conv_forward_portable(x.clone(), w, &map, false));
+    assert_eq!(y, vec![30.0, 400.0]);
+    let dy = Tensor::<Inner, 2>::from_data(TensorData::new(vec![1.0, 1.0], [2, 1]), &dev);
+    let dw = to_vec_inner(conv_weight_grad_portable(x, dy, &map, [1, 2, 1], false));
+    assert_eq!(dw, vec![3.0, 4.0]);
 }
 
 #[test]
