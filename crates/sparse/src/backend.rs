@@ -75,6 +75,19 @@ fn with_zero_row<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
     Tensor::cat(vec![x, Tensor::zeros([1, c], &device)], 0)
 }
 
+/// The `[rows.len(), K·C_in]` implicit-GEMM block of output rows `rows`: their K neighbour rows of
+/// `xp` (the input with its zero row) side by side, read through the gather table.
+fn gather_rows<B: Backend>(
+    xp: &Tensor<B, 2>,
+    table: &[u32],
+    kv: usize,
+    rows: std::ops::Range<usize>,
+) -> Tensor<B, 2> {
+    let [_, cin] = xp.dims();
+    let idx = index_tensor::<B>(&table[rows.start * kv..rows.end * kv], &xp.device());
+    xp.clone().select(0, idx).reshape([rows.len(), kv * cin])
+}
+
 /// Portable forward (any backend; the one GPU backends use). As an implicit GEMM when the map has a
 /// [`KernelMap::gather_table`]: one gather of every output row's K neighbour rows into
 /// `[n_out, K·C_in]` (absent neighbours read a zero row) and one matrix product with the
@@ -112,11 +125,7 @@ pub fn conv_forward_portable_chunked<B: Backend>(
     let xp = with_zero_row(x);
     let mut parts = Vec::new();
     for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
-        let g = xp
-            .clone()
-            .select(0, index_tensor::<B>(&table[a * kv..b * kv], &device))
-            .reshape([b - a, kv * cin]);
-        parts.push(g.matmul(wm.clone()));
+        parts.push(gather_rows(&xp, table, kv, a..b).matmul(wm.clone()));
     }
     if parts.len() == 1 {
         parts.pop().expect("one part")
@@ -191,10 +200,7 @@ pub fn conv_weight_grad_portable_chunked<B: Backend>(
     let xp = with_zero_row(x);
     let mut dw: Option<Tensor<B, 2>> = None;
     for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
-        let g = xp
-            .clone()
-            .select(0, index_tensor::<B>(&table[a * kv..b * kv], &device))
-            .reshape([b - a, kv * cin]);
+        let g = gather_rows(&xp, table, kv, a..b);
         let part = g.transpose().matmul(dy.clone().slice([a..b, 0..cout]));
         dw = Some(match dw {
             Some(acc) => acc + part,
