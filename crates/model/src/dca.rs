@@ -59,6 +59,11 @@ pub struct DcaConfig {
     /// Hidden width of the feed-forward layer, as a multiple of `embed_dim`.
     #[config(default = 2)]
     pub ffn_ratio: usize,
+    /// Scale of the initial sampling offsets: point `j` starts `(j + 1)·scale` feature pixels from the
+    /// reference point. 1.0 is Deformable DETR's pattern; small input images (a few dozen feature
+    /// pixels across) want less, or the initial points miss the object the voxel projects onto.
+    #[config(default = 1.0)]
+    pub offset_init_scale: f64,
 }
 
 impl DcaConfig {
@@ -73,6 +78,12 @@ impl DcaConfig {
                 self.embed_dim, self.num_heads
             )));
         }
+        if !(self.offset_init_scale.is_finite() && self.offset_init_scale >= 0.0) {
+            return Err(ModelError::Config(format!(
+                "DCA: offset_init_scale {} must be finite and non-negative",
+                self.offset_init_scale
+            )));
+        }
         if self.num_levels == 0 || self.num_points == 0 || self.feat_channels == 0 {
             return Err(ModelError::Config(format!(
                 "DCA: num_levels {}, num_points {} and feat_channels {} must be positive",
@@ -83,8 +94,8 @@ impl DcaConfig {
     }
 
     /// Initialises the block. Offsets start at Deformable DETR's pattern (head `m` points in direction
-    /// `2πm/M`, point `j` at distance `j+1` feature pixels, weight matrix zero); attention weights start
-    /// uniform (zero weight and bias).
+    /// `2πm/M`, point `j` at distance `(j+1)·offset_init_scale` feature pixels, weight matrix zero);
+    /// attention weights start uniform (zero weight and bias).
     pub fn init<B: Backend>(&self, device: &B::Device) -> DeformableCrossAttention<B> {
         let d = self.embed_dim;
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
@@ -98,8 +109,9 @@ impl DcaConfig {
             let norm = c.abs().max(s.abs()).max(1e-12);
             for _ in 0..l {
                 for j in 0..p {
-                    bias.push((c / norm * (j + 1) as f64) as f32);
-                    bias.push((s / norm * (j + 1) as f64) as f32);
+                    let r = (j + 1) as f64 * self.offset_init_scale;
+                    bias.push((c / norm * r) as f32);
+                    bias.push((s / norm * r) as f32);
                 }
             }
         }
@@ -601,6 +613,46 @@ mod tests {
             dir.display()
         );
         dir
+    }
+
+    /// Initial offsets: Deformable DETR's ring (head `m` along angle `2πm/M`, normalised so the larger
+    /// component is 1, point `j` at `j + 1`), times `offset_init_scale`; a negative scale is refused.
+    #[test]
+    fn initial_offsets_follow_the_scaled_ring() {
+        let device = Default::default();
+        for scale in [1.0, 0.25] {
+            let cfg = DcaConfig::new(8, 4)
+                .with_num_heads(4)
+                .with_num_levels(2)
+                .with_num_points(3)
+                .with_offset_init_scale(scale);
+            cfg.validate().unwrap();
+            let dca = cfg.init::<B64>(&device);
+            let b: Vec<f64> = dca
+                .sampling_offsets
+                .bias
+                .unwrap()
+                .val()
+                .into_data()
+                .to_vec()
+                .unwrap();
+            assert_eq!(b.len(), 4 * 2 * 3 * 2);
+            let dirs = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
+            for (m, dir) in dirs.iter().enumerate() {
+                for l in 0..2 {
+                    for j in 0..3 {
+                        let i = ((m * 2 + l) * 3 + j) * 2;
+                        let r = (j + 1) as f64 * scale;
+                        assert!((b[i] - dir[0] * r).abs() < 1e-6, "{scale} {m} {l} {j}");
+                        assert!((b[i + 1] - dir[1] * r).abs() < 1e-6, "{scale} {m} {l} {j}");
+                    }
+                }
+            }
+        }
+        assert!(DcaConfig::new(8, 4)
+            .with_offset_init_scale(-1.0)
+            .validate()
+            .is_err());
     }
 
     fn npy(path: &std::path::Path) -> (Vec<usize>, Vec<f64>) {

@@ -63,6 +63,10 @@ pub struct SparseOccPPConfig {
     /// DCA feed-forward width as a multiple of `embed_dim`.
     #[config(default = 2)]
     pub dca_ffn_ratio: usize,
+    /// Initial DCA sampling offsets in units of Deformable DETR's pattern (1.0, `(j+1)` feature
+    /// pixels for point `j`); see [`DcaConfig::offset_init_scale`].
+    #[config(default = 1.0)]
+    pub dca_offset_init_scale: f64,
     /// Anchor generation (paper default coarse-to-fine).
     #[config(default = "AnchorMode::CoarseToFine")]
     pub anchor_mode: AnchorMode,
@@ -106,6 +110,7 @@ impl SparseOccPPConfig {
             .with_num_heads(self.dca_heads)
             .with_num_points(self.dca_points)
             .with_ffn_ratio(self.dca_ffn_ratio)
+            .with_offset_init_scale(self.dca_offset_init_scale)
     }
 
     /// The anchor generator's configuration.
