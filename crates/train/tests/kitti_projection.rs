@@ -14,22 +14,10 @@ use occ_train::dataset::{Dataset, Sample};
 use occ_train::RunConfig;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let p = std::env::temp_dir().join(format!("occ_kproj_{tag}_{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+mod common;
+use common::TempDir;
 
 /// Training ids (SemanticKITTI learning map) of the ground classes and their synthetic scene class.
 const GROUND: [(u8, usize); 5] = [(9, 9), (10, 10), (11, 11), (12, 12), (17, 17)];

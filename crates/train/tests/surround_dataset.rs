@@ -10,22 +10,10 @@ use occ_data::synthetic::{generate, read_synthetic_meta, Preset, SynthConfig};
 use occ_geometry::{mat4_inverse, mat4_mul, transform_point, Mat4, VoxelGrid};
 use occ_train::dataset::{collate, occ3d_training_labels, Dataset, DatasetFormat};
 use occ_train::RunConfig;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let p = std::env::temp_dir().join(format!("occ_surround_{tag}_{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+mod common;
+use common::TempDir;
 
 const W: usize = 176;
 const H: usize = 64;
