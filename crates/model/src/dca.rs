@@ -116,7 +116,7 @@ impl DcaConfig {
             }
         }
         sampling_offsets.bias = Some(Param::from_tensor(Tensor::from_data(
-            TensorData::new(bias, [m * l * p * 2]),
+            TensorData::new(bias, [m * l * p * 2]).convert::<B::FloatElem>(),
             device,
         )));
         let attention_weights = LinearConfig::new(d, m * l * p)
@@ -634,6 +634,7 @@ mod tests {
                 .unwrap()
                 .val()
                 .into_data()
+                .convert::<f64>()
                 .to_vec()
                 .unwrap();
             assert_eq!(b.len(), 4 * 2 * 3 * 2);
