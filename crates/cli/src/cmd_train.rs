@@ -116,8 +116,11 @@ pub fn run_with(
         &cfg.data.train_sequences,
         &cfg.data.val_sequences,
     )?;
-    // Depth supervision (SparseOcc, dense baseline) needs the LiDAR scans.
-    ds.set_load_points(cfg.model.kind != ModelKind::SparseOccPP);
+    // Depth supervision (SparseOcc, dense baseline, SparseOcc++ with the depth gate) needs the LiDAR
+    // scans.
+    ds.set_load_points(
+        cfg.model.kind != ModelKind::SparseOccPP || cfg.model.pp_config().depth_gate,
+    );
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",

@@ -32,6 +32,7 @@
 
 use crate::batch::Batch;
 use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
+use crate::depth_gate::DepthMap;
 use crate::error::ModelError;
 use burn::module::Param;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -345,13 +346,17 @@ impl<B: Backend> AnchorGenerator<B> {
         images: &[Tensor<B, 4>],
         strides: &[usize],
         batch: &Batch<B>,
+        depth: Option<&DepthMap<B>>,
     ) -> Result<(Tensor<B, 2>, LevelPrediction<B>), ModelError> {
         let device = feats.device();
         let dims = self.level_dims(r);
         let grid = batch.grid.downsampled(LEVEL_FACTORS[r]);
         let pos = self.pos.encode(&coords, dims, &device);
         let hits = project_queries(&coords, &grid, &batch.cameras, batch.image_hw())?;
-        let x = stage.dca.forward(feats, pos, &hits, images, strides)?;
+        let gate = depth.map(|m| m.hit_gate(&hits)).transpose()?;
+        let x = stage
+            .dca
+            .forward_gated(feats, pos, &hits, images, strides, gate)?;
         let logits = stage.score.forward(x.clone());
         Ok((
             x,
@@ -365,7 +370,8 @@ impl<B: Backend> AnchorGenerator<B> {
         ))
     }
 
-    /// Generates the anchors.
+    /// Generates the anchors. `depth`: the depth map that gates every DCA stage
+    /// ([`crate::depth_gate`]), or `None` (the paper's DCA).
     ///
     /// # Shapes
     /// - `images[l]`: `[B·V, C, h_l, w_l]`, `strides[l]` input pixels per feature pixel
@@ -375,6 +381,7 @@ impl<B: Backend> AnchorGenerator<B> {
         images: &[Tensor<B, 4>],
         strides: &[usize],
         batch: &Batch<B>,
+        depth: Option<&DepthMap<B>>,
     ) -> Result<AnchorOutput<B>, ModelError> {
         if batch.grid.dims != self.full_dims {
             return Err(ModelError::Input(format!(
@@ -399,8 +406,16 @@ impl<B: Backend> AnchorGenerator<B> {
                 let mut feats = self.embed0.val().repeat_dim(0, bsz);
                 for r in 0..3 {
                     let n = coords.len();
-                    let (x, mut pred) =
-                        self.run_stage(&self.stages[r], r, coords, feats, images, strides, batch)?;
+                    let (x, mut pred) = self.run_stage(
+                        &self.stages[r],
+                        r,
+                        coords,
+                        feats,
+                        images,
+                        strides,
+                        batch,
+                        depth,
+                    )?;
                     crate::profile::trace_mark(&format!("anchors level {r}"), &x);
                     let scores = occupancy_score(&pred.logits);
                     let kept = topk_per_batch(&scores, &pred.coords, self.keep_ratios[r]);
@@ -484,7 +499,7 @@ impl<B: Backend> AnchorGenerator<B> {
                 };
                 let n = coords.len();
                 let (x, mut pred) =
-                    self.run_stage(stage, 2, coords, feats, images, strides, batch)?;
+                    self.run_stage(stage, 2, coords, feats, images, strides, batch, depth)?;
                 pred.kept = (0..n).collect();
                 let anchors = SparseTensor::new(pred.coords.clone(), x, dims2, bsz)?;
                 stats.push(("anchor_uniform".to_string(), n));

@@ -182,6 +182,8 @@ pub struct ViewHits {
     pub slot: Vec<u32>,
     /// Reference point `(u, v)` in network-input pixels.
     pub uv: Vec<[f64; 2]>,
+    /// Depth of the voxel centre along the view's optical axis, metres.
+    pub depth_m: Vec<f64>,
     /// Number of views that see each query.
     pub views_per_query: Vec<u32>,
     /// Largest number of hits of one image.
@@ -217,7 +219,7 @@ pub fn project_queries(
     }
     let (h, w) = (image_hw.0 as f64, image_hw.1 as f64);
     let num_images = cameras.len() * num_views;
-    let mut per_image: Vec<Vec<(u32, [f64; 2])>> = vec![Vec::new(); num_images];
+    let mut per_image: Vec<Vec<(u32, [f64; 2], f64)>> = vec![Vec::new(); num_images];
     let mut views_per_query = vec![0u32; coords.len()];
     for (q, c) in coords.iter().enumerate() {
         let b = usize::try_from(c[0])
@@ -244,9 +246,9 @@ pub fn project_queries(
         }
         let centre = grid.voxel_center_m(ijk);
         for (v, cam) in cameras[b].iter().enumerate() {
-            if let Some([u, vv, _d]) = project_with(&cam.img_from_lidar, centre) {
+            if let Some([u, vv, d]) = project_with(&cam.img_from_lidar, centre) {
                 if u >= 0.0 && vv >= 0.0 && u < w && vv < h {
-                    per_image[b * num_views + v].push((q as u32, [u, vv]));
+                    per_image[b * num_views + v].push((q as u32, [u, vv], d));
                     views_per_query[q] += 1;
                 }
             }
@@ -260,15 +262,17 @@ pub fn project_queries(
         image: Vec::with_capacity(total),
         slot: Vec::with_capacity(total),
         uv: Vec::with_capacity(total),
+        depth_m: Vec::with_capacity(total),
         views_per_query,
         max_per_image: per_image.iter().map(Vec::len).max().unwrap_or(0),
     };
     for (n, list) in per_image.iter().enumerate() {
-        for (s, &(q, uv)) in list.iter().enumerate() {
+        for (s, &(q, uv, d)) in list.iter().enumerate() {
             hits.query.push(q);
             hits.image.push(n as u32);
             hits.slot.push(s as u32);
             hits.uv.push(uv);
+            hits.depth_m.push(d);
         }
     }
     Ok(hits)
@@ -375,10 +379,32 @@ impl<B: Backend> DeformableCrossAttention<B> {
         feats: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
+        self.aggregate_gated(query, hits, feats, strides, None)
+    }
+
+    /// [`Self::aggregate`] with every hit's samples multiplied by `gate[hit]` (`[nh]`, e.g. the
+    /// depth gate of [`crate::depth_gate`]) before the average over views; `None` = all ones.
+    pub fn aggregate_gated(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        if let Some(g) = &gate {
+            if g.dims()[0] != hits.len() {
+                return Err(ModelError::Input(format!(
+                    "DCA: {} gate values for {} hits",
+                    g.dims()[0],
+                    hits.len()
+                )));
+            }
+        }
         if crate::host_data::is_host_backend::<B>() {
-            self.aggregate_host(query, hits, feats, strides)
+            self.aggregate_host(query, hits, feats, strides, gate)
         } else {
-            self.aggregate_tensor_ops(query, hits, feats, strides)
+            self.aggregate_tensor_ops(query, hits, feats, strides, gate)
         }
     }
 
@@ -395,14 +421,15 @@ impl<B: Backend> DeformableCrossAttention<B> {
         hits: &ViewHits,
         feats: &[Tensor<B, 4>],
         strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
     ) -> Result<Tensor<B, 2>, ModelError> {
         if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
             return Ok(zeros);
         }
         let out = if crate::host_data::is_host_f32::<B>() {
-            self.aggregate_host_typed::<f32>(query, hits, feats, strides)
+            self.aggregate_host_typed::<f32>(query, hits, feats, strides, gate)
         } else {
-            self.aggregate_host_typed::<f64>(query, hits, feats, strides)
+            self.aggregate_host_typed::<f64>(query, hits, feats, strides, gate)
         };
         out.ok_or_else(|| {
             ModelError::Input("DCA: the host loop needs burn-ndarray f32/f64 tensors".into())
@@ -415,12 +442,17 @@ impl<B: Backend> DeformableCrossAttention<B> {
         hits: &ViewHits,
         feats: &[Tensor<B, 4>],
         strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
     ) -> Option<Tensor<B, 2>> {
         use rayon::prelude::*;
         let device = query.device();
         let [n, d] = query.dims();
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
         let dh = d / m;
+        let gate: Option<Vec<T>> = match gate {
+            Some(g) => Some(g.into_data().convert::<T>().into_vec().ok()?),
+            None => None,
+        };
         let (offsets, weights) = self.sampling(query);
         // Freshly computed, unshared tensors: `into_data` hands over their buffers without copying.
         let off: Vec<T> = offsets.into_data().into_vec().ok()?;
@@ -452,6 +484,10 @@ impl<B: Backend> DeformableCrossAttention<B> {
             for &hi in &order[start[q]..start[q + 1]] {
                 let img = hits.image[hi] as usize;
                 let [u, v] = hits.uv[hi];
+                let g = gate.as_ref().map_or(1.0, |g| g[hi].to_f64());
+                if g == 0.0 {
+                    continue;
+                }
                 for (lvl, ((map, h, w), &s)) in maps.iter().zip(strides).enumerate() {
                     let (h, w) = (*h as i64, *w as i64);
                     let (bx, by) = ((u + 0.5) / s as f64 - 0.5, (v + 0.5) / s as f64 - 0.5);
@@ -464,7 +500,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
                             let (x0, y0) = (x.floor(), y.floor());
                             let (fx, fy) = (x - x0, y - y0);
                             let (x0, y0) = (x0 as i64, y0 as i64);
-                            let wk = wts[k].to_f64();
+                            let wk = wts[k].to_f64() * g;
                             for (yy, wy) in [(y0, 1.0 - fy), (y0 + 1, fy)] {
                                 if yy < 0 || yy >= h {
                                     continue;
@@ -502,6 +538,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         hits: &ViewHits,
         feats: &[Tensor<B, 4>],
         strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
     ) -> Result<Tensor<B, 2>, ModelError> {
         if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
             return Ok(zeros);
@@ -559,9 +596,12 @@ impl<B: Backend> DeformableCrossAttention<B> {
                 None => contrib,
             });
         }
-        let per_hit = acc
+        let mut per_hit = acc
             .unwrap_or_else(|| Tensor::zeros([nh, m, dh], &device))
             .reshape([nh, d]);
+        if let Some(g) = gate {
+            per_hit = per_hit * g.reshape([nh, 1]);
+        }
         let inv: Vec<f64> = hits
             .views_per_query
             .iter()
@@ -588,7 +628,20 @@ impl<B: Backend> DeformableCrossAttention<B> {
         images: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
-        let attn = self.aggregate(feats.clone() + pos, hits, images, strides)?;
+        self.forward_gated(feats, pos, hits, images, strides, None)
+    }
+
+    /// [`Self::forward`] with a per-hit gate on the samples ([`Self::aggregate_gated`]).
+    pub fn forward_gated(
+        &self,
+        feats: Tensor<B, 2>,
+        pos: Tensor<B, 2>,
+        hits: &ViewHits,
+        images: &[Tensor<B, 4>],
+        strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        let attn = self.aggregate_gated(feats.clone() + pos, hits, images, strides, gate)?;
         crate::profile::trace_mark("dca sampling", &attn);
         let x = self.norm1.forward(feats + self.output_proj.forward(attn));
         let y = self.ffn2.forward(relu(self.ffn1.forward(x.clone())));

@@ -12,6 +12,7 @@ pub mod batch;
 pub mod conv2d_host;
 pub mod dca;
 pub mod dense_baseline;
+pub mod depth_gate;
 pub mod error;
 pub mod fpn;
 mod host_data;

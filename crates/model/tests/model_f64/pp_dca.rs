@@ -155,24 +155,49 @@ fn dca_host_loop_equals_tensor_ops() {
         assert!(hits.len() > 64, "{} hits", hits.len());
         let feats = features::<Bk>(2, 5, &device);
         let query = randn::<Bk, 2>([coords.len(), d], 23, &device);
-        let host = to_f64(
-            &dca.aggregate_host(query.clone(), &hits, &feats, &STRIDES)
-                .unwrap(),
+        // Ungated, and with a per-hit gate in [0, 1] (a quarter of the hits shut).
+        let gate_vals: Vec<f64> = (0..hits.len())
+            .map(|i| {
+                if i % 4 == 0 {
+                    0.0
+                } else {
+                    0.2 + (i % 7) as f64 / 8.0
+                }
+            })
+            .collect();
+        let gate = Tensor::<Bk, 1>::from_data(
+            TensorData::new(gate_vals, [hits.len()]).convert::<Bk::FloatElem>(),
+            &device,
         );
-        let ops = to_f64(
-            &dca.aggregate_tensor_ops(query, &hits, &feats, &STRIDES)
-                .unwrap(),
-        );
-        assert_eq!(host.len(), ops.len());
-        let mut nonzero = 0;
-        for (i, (a, b)) in host.iter().zip(&ops).enumerate() {
-            assert!(
-                (a - b).abs() < tol * (1.0 + b.abs()),
-                "entry {i}: {a} vs {b}"
+        let mut outs = Vec::new();
+        for g in [None, Some(gate)] {
+            let host = to_f64(
+                &dca.aggregate_host(query.clone(), &hits, &feats, &STRIDES, g.clone())
+                    .unwrap(),
             );
-            nonzero += usize::from(*b != 0.0);
+            let ops = to_f64(
+                &dca.aggregate_tensor_ops(query.clone(), &hits, &feats, &STRIDES, g)
+                    .unwrap(),
+            );
+            assert_eq!(host.len(), ops.len());
+            let mut nonzero = 0;
+            for (i, (a, b)) in host.iter().zip(&ops).enumerate() {
+                assert!(
+                    (a - b).abs() < tol * (1.0 + b.abs()),
+                    "entry {i}: {a} vs {b}"
+                );
+                nonzero += usize::from(*b != 0.0);
+            }
+            assert!(nonzero > host.len() / 3, "{nonzero} of {}", host.len());
+            outs.push(ops);
         }
-        assert!(nonzero > host.len() / 2);
+        // The gate changes the result.
+        let diff: f64 = outs[0]
+            .iter()
+            .zip(&outs[1])
+            .map(|(a, b)| (a - b).abs())
+            .sum();
+        assert!(diff > 1e-3, "{diff}");
     }
     check::<B64>(1e-10);
     check::<NB>(1e-4);

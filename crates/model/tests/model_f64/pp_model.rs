@@ -429,3 +429,124 @@ fn bad_inputs_are_errors() {
     let bad: SparseOccPP<NB> = odd.init(&device);
     assert!(bad.forward(&feats, &STRIDES, &batch).is_err());
 }
+
+/// The depth gate (not in the paper, `depth_gate = true`): the depth map has one logit per bin at the
+/// finest feature level, every parameter (the depth head included) gets a gradient through the gated
+/// DCA, and the `depth` loss term appears exactly when the batch carries LiDAR points.
+#[test]
+fn depth_gate_is_trained_by_the_gated_attention_and_the_lidar_depth() {
+    let cfg = tiny_config()
+        .with_depth_gate(true)
+        .with_depth_dbound([0.5, 8.0, 0.5]);
+    let device = Default::default();
+    let model: SparseOccPP<AD> = cfg.try_init(&device).expect("valid config");
+    let mut batch = batch::<AD>(2, 31, &device);
+    let feats = features::<AD>(2, 131, &device);
+    let out = model.forward(&feats, &STRIDES, &batch).expect("forward");
+    let depth = out.depth.as_ref().expect("depth map");
+    let (h, w) = (IMG_HW.0 / STRIDES[0], IMG_HW.1 / STRIDES[0]);
+    assert_eq!(depth.logits.dims(), [4, 15, h, w]);
+    let grads = sum_all(&out).backward();
+    let n = assert_all_grads(&model, &grads);
+    assert!(n > 50, "only {n} parameters visited");
+
+    let weights = vec![1.0; cfg.num_classes];
+    let names = |o: &PPOutput<AD>, b: &occ_model::Batch<AD>| -> Vec<String> {
+        o.losses(b, &cfg, &weights)
+            .unwrap()
+            .into_iter()
+            .map(|(n, _)| n)
+            .collect()
+    };
+    assert!(!names(&out, &batch).contains(&"depth".to_string()));
+    // Points on the ground slab and on a wall in front of both cameras.
+    let pts: Vec<[f32; 3]> = (0..200)
+        .map(|i| {
+            let y = -3.0 + 0.03 * i as f32;
+            if i % 2 == 0 {
+                [5.0, y, -0.2 + 0.004 * i as f32]
+            } else {
+                [1.0 + 0.02 * i as f32, y, -0.7]
+            }
+        })
+        .collect();
+    batch.points = Some(vec![pts.clone(), pts]);
+    let losses = out.losses(&batch, &cfg, &weights).unwrap();
+    let (_, d) = losses
+        .iter()
+        .find(|(n, _)| n == "depth")
+        .expect("depth term with points");
+    let d: f64 = d.clone().into_scalar();
+    assert!(d.is_finite() && d > 0.0, "{d}");
+    assert!(names(&out, &batch).contains(&"occ.ce".to_string()));
+    // The paper model has no depth head and ignores points.
+    let (_, plain) = run::<AD>(&tiny_config(), 2, 31);
+    assert!(plain.depth.is_none());
+    assert!(!names(&plain, &batch).contains(&"depth".to_string()));
+}
+
+/// `anchor_unknown_as_empty` (not in the paper): the anchor terms equal `occ_loss` on the candidates
+/// with every ignored label (255) replaced by empty; the final-voxel terms are unchanged.
+#[test]
+fn anchor_unknown_as_empty_supervises_ignored_candidates_as_empty() {
+    let cfg = tiny_config();
+    let device = Default::default();
+    let model: SparseOccPP<NB> = cfg.try_init(&device).unwrap();
+    let mut batch = batch::<NB>(1, 41, &device);
+    // An unobserved block (x < 16: a whole 1/8 voxel column and its children) is ignored.
+    let [_, ny, nz] = FULL_DIMS;
+    for t in batch.target.as_mut().unwrap() {
+        t[..16 * ny * nz].iter_mut().for_each(|l| *l = 255);
+    }
+    let feats = features::<NB>(1, 141, &device);
+    let out = model.forward(&feats, &STRIDES, &batch).unwrap();
+    let weights: Vec<f64> = (0..cfg.num_classes).map(|c| 1.0 + 0.1 * c as f64).collect();
+    let as_map = |l: Vec<(String, Tensor<NB, 1>)>| -> Vec<(String, f64)> {
+        l.into_iter().map(|(n, t)| (n, t.into_scalar())).collect()
+    };
+    let plain = as_map(out.losses(&batch, &cfg, &weights).unwrap());
+    let cfg_ue = cfg.clone().with_anchor_unknown_as_empty(true);
+    let ue = as_map(out.losses(&batch, &cfg_ue, &weights).unwrap());
+    let targets = occ_model::sparseocc_pp::pp_targets(&out, &batch, &cfg).unwrap();
+    let levels_with_unknown = targets
+        .anchor_labels
+        .iter()
+        .filter(|l| l.contains(&255))
+        .count();
+    assert!(
+        levels_with_unknown > 0,
+        "no ignored candidate in the test scene"
+    );
+    let mut changed = 0;
+    for ((n0, v0), (n1, v1)) in plain.iter().zip(&ue) {
+        assert_eq!(n0, n1);
+        if let Some(rest) = n0.strip_prefix("anchor") {
+            let level: usize = rest[..1].parse().unwrap();
+            let labels = &targets.anchor_labels[level];
+            let mapped: Vec<u8> = labels
+                .iter()
+                .map(|&l| if l == 255 { 0 } else { l })
+                .collect();
+            let term = &n0[n0.find('.').unwrap() + 1..];
+            let want: f64 = occ_model::loss::occ_loss(
+                out.anchor_levels[level].logits.clone(),
+                &mapped,
+                &weights,
+            )
+            .unwrap()
+            .into_iter()
+            .find(|(n, _)| n == term)
+            .unwrap()
+            .1
+            .into_scalar();
+            assert!((v1 - want).abs() < 1e-9, "{n0}: {v1} vs {want}");
+            changed += usize::from((v1 - v0).abs() > 1e-9);
+        } else {
+            assert_eq!(v0, v1, "{n0} must not change");
+        }
+    }
+    assert!(
+        changed >= 2 * levels_with_unknown,
+        "only {changed} anchor terms changed"
+    );
+}
