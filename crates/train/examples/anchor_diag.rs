@@ -1,0 +1,157 @@
+//! Diagnostic: how well a trained SparseOcc++ run's anchor levels cover the occupied voxels of a
+//! dataset's frames, and what the final head predicts for each ground-truth class.
+//!
+//! `cargo run --release -p occ-train --example anchor_diag -- RUN_DIR DATA_DIR SEQ [FRAMES]`
+use burn::backend::NdArray;
+use occ_model::sparseocc_pp::pp_targets;
+use occ_model::OccNet;
+use occ_train::dataset::{collate, Dataset};
+use occ_train::RunConfig;
+use std::path::Path;
+
+type B = NdArray<f32>;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 4 {
+        return Err("usage: anchor_diag RUN_DIR DATA_DIR SEQ [FRAMES]".into());
+    }
+    let run = Path::new(&args[1]);
+    let cfg = RunConfig::load(&run.join("config.toml"))?;
+    let grid: occ_geometry::VoxelGrid =
+        serde_json::from_slice(&std::fs::read(run.join("grid.json"))?)?;
+    let device = Default::default();
+    let model: OccNet<B> = cfg.model.init(&device)?;
+    let model = occ_model::load_checked(model, &run.join("checkpoint").join("model.bin"), &device)?;
+    let mut ds = Dataset::open(Path::new(&args[2]), &cfg.data, &[args[3].clone()], &[])?;
+    ds.set_load_points(true);
+    let frames: usize = args
+        .get(4)
+        .map(|s| s.parse())
+        .transpose()?
+        .unwrap_or(ds.len());
+    let pp = model.pp.as_ref().ok_or("not a SparseOcc++ run")?;
+    let nc = cfg.model.num_classes;
+    let mut conf = vec![vec![0usize; nc]; nc]; // final: gt x pred (final voxels only)
+    let mut conf_l2 = vec![vec![0usize; nc]; nc]; // level-2 anchor logits on the kept anchors
+    for i in 0..frames.min(ds.len()) {
+        let s = ds.load::<rand_chacha::ChaCha8Rng>(i, None)?;
+        let batch = collate::<B>(std::slice::from_ref(&s), grid, &device)?;
+        let [b, v, c, h, w] = batch.images.dims();
+        let feats = model
+            .encoder
+            .forward(batch.images.clone().reshape([b * v, c, h, w]));
+        let strides = model.encoder.strides();
+        let out = pp.forward(&feats, &strides, &batch)?;
+        let t = pp_targets(&out, &batch, pp.config())?;
+        let mut line = format!("frame {i}:");
+        if let Some(dm) = &out.depth {
+            let [_, _, h, w] = dm.logits.dims();
+            let t = occ_model::lss::depth_targets(&batch, h, w, dm.stride, dm.dbound)?
+                .unwrap_or_default();
+            let am: Vec<i64> = dm
+                .logits
+                .clone()
+                .argmax(1)
+                .into_data()
+                .convert::<i64>()
+                .to_vec()
+                .map_err(|e| format!("{e:?}"))?;
+            let (mut n, mut ok1, mut ok3) = (0, 0, 0);
+            for (&tt, &p) in t.iter().zip(&am) {
+                if tt >= 0 {
+                    n += 1;
+                    ok1 += usize::from((tt - p).abs() <= 1);
+                    ok3 += usize::from((tt - p).abs() <= 3);
+                }
+            }
+            line += &format!(
+                " depth: {n} px, argmax within 1 bin {:.2}, 3 bins {:.2};",
+                ok1 as f64 / n.max(1) as f64,
+                ok3 as f64 / n.max(1) as f64
+            );
+        }
+        for (r, (lvl, labels)) in out.anchor_levels.iter().zip(&t.anchor_labels).enumerate() {
+            let occ = |l: u8| l != 0 && l != 255;
+            let n_occ = labels.iter().filter(|&&l| occ(l)).count();
+            let kept_occ = lvl.kept.iter().filter(|&&k| occ(labels[k])).count();
+            // Ground layer (z = 0) among kept, and occupied above it.
+            let kept_z0 = lvl.kept.iter().filter(|&&k| lvl.coords[k][3] == 0).count();
+            let occ_above = labels
+                .iter()
+                .zip(&lvl.coords)
+                .filter(|(&l, c)| occ(l) && c[3] > 0)
+                .count();
+            let kept_occ_above = lvl
+                .kept
+                .iter()
+                .filter(|&&k| occ(labels[k]) && lvl.coords[k][3] > 0)
+                .count();
+            let n_ign = labels.iter().filter(|&&l| l == 255).count();
+            let kept_ign = lvl.kept.iter().filter(|&&k| labels[k] == 255).count();
+            line += &format!(
+                " | L{r} cand {} ignored {n_ign} kept {kept_ign} | occ {} kept {} kept_occ {} (z0 kept {}; occ above z0 {} kept {})",
+                labels.len(),
+                n_occ,
+                lvl.kept.len(),
+                kept_occ,
+                kept_z0,
+                occ_above,
+                kept_occ_above
+            );
+        }
+        println!("{line}");
+        if let (Some(lvl), Some(labels)) = (out.anchor_levels.last(), t.anchor_labels.last()) {
+            let am: Vec<i64> = lvl
+                .logits
+                .clone()
+                .argmax(1)
+                .into_data()
+                .convert::<i64>()
+                .to_vec()
+                .map_err(|e| format!("{e:?}"))?;
+            for &k in &lvl.kept {
+                if labels[k] != 255 {
+                    conf_l2[labels[k] as usize][am[k] as usize] += 1;
+                }
+            }
+        }
+        let pred = out
+            .out
+            .logits
+            .clone()
+            .argmax(1)
+            .into_data()
+            .convert::<i64>()
+            .to_vec::<i64>()
+            .map_err(|e| format!("{e:?}"))?;
+        for (&g, &p) in t.labels.iter().zip(&pred) {
+            if g != 255 {
+                conf[g as usize][p as usize] += 1;
+            }
+        }
+    }
+    for (name, conf) in [
+        ("level-2 anchors (anchor logits)", &conf_l2),
+        ("final voxels", &conf),
+    ] {
+        println!("{name}: gt class -> total, predicted empty, predicted right, top other");
+        for (g, row) in conf.iter().enumerate() {
+            let tot: usize = row.iter().sum();
+            if tot == 0 {
+                continue;
+            }
+            let (best, n) = row
+                .iter()
+                .enumerate()
+                .filter(|(p, _)| *p != g && *p != 0)
+                .max_by_key(|(_, &n)| n)
+                .unwrap_or((0, &0));
+            println!(
+                "  {g:2} -> {tot:6} empty {:6} right {:6} other {best}:{n}",
+                row[0], row[g]
+            );
+        }
+    }
+    Ok(())
+}
