@@ -11,6 +11,16 @@ use std::path::Path;
 
 type B = NdArray<f32>;
 
+/// Argmax over dimension 1, flattened.
+fn argmax1<const D: usize>(t: &burn::tensor::Tensor<B, D>) -> Result<Vec<i64>, String> {
+    t.clone()
+        .argmax(1)
+        .into_data()
+        .convert::<i64>()
+        .to_vec()
+        .map_err(|e| format!("{e:?}"))
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     if args.len() < 4 {
@@ -49,14 +59,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let [_, _, h, w] = dm.logits.dims();
             let t = occ_model::lss::depth_targets(&batch, h, w, dm.stride, dm.dbound)?
                 .unwrap_or_default();
-            let am: Vec<i64> = dm
-                .logits
-                .clone()
-                .argmax(1)
-                .into_data()
-                .convert::<i64>()
-                .to_vec()
-                .map_err(|e| format!("{e:?}"))?;
+            let am = argmax1(&dm.logits)?;
             let (mut n, mut ok1, mut ok3) = (0, 0, 0);
             for (&tt, &p) in t.iter().zip(&am) {
                 if tt >= 0 {
@@ -102,29 +105,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         println!("{line}");
         if let (Some(lvl), Some(labels)) = (out.anchor_levels.last(), t.anchor_labels.last()) {
-            let am: Vec<i64> = lvl
-                .logits
-                .clone()
-                .argmax(1)
-                .into_data()
-                .convert::<i64>()
-                .to_vec()
-                .map_err(|e| format!("{e:?}"))?;
+            let am = argmax1(&lvl.logits)?;
             for &k in &lvl.kept {
                 if labels[k] != 255 {
                     conf_l2[labels[k] as usize][am[k] as usize] += 1;
                 }
             }
         }
-        let pred = out
-            .out
-            .logits
-            .clone()
-            .argmax(1)
-            .into_data()
-            .convert::<i64>()
-            .to_vec::<i64>()
-            .map_err(|e| format!("{e:?}"))?;
+        let pred = argmax1(&out.out.logits)?;
         for (&g, &p) in t.labels.iter().zip(&pred) {
             if g != 255 {
                 conf[g as usize][p as usize] += 1;
