@@ -116,11 +116,10 @@ pub fn run_with(
         &cfg.data.train_sequences,
         &cfg.data.val_sequences,
     )?;
-    // Depth supervision (SparseOcc, dense baseline, SparseOcc++ with the depth gate) needs the LiDAR
-    // scans.
-    ds.set_load_points(
-        cfg.model.kind != ModelKind::SparseOccPP || cfg.model.pp_config().depth_gate,
-    );
+    // Depth supervision (SparseOcc, dense baseline, SparseOcc++ with the depth gate) and the image
+    // semantic targets of SparseOcc++'s `sem2d_aux` need the LiDAR scans.
+    let pp = cfg.model.pp_config();
+    ds.set_load_points(cfg.model.kind != ModelKind::SparseOccPP || pp.depth_gate || pp.sem2d_aux);
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",

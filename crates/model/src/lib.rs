@@ -29,6 +29,7 @@ pub mod propagator;
 pub mod pyramid;
 pub mod sample;
 pub mod scf_head;
+pub mod sem2d;
 pub mod sparseocc;
 pub mod sparseocc_pp;
 pub mod subvoxel;

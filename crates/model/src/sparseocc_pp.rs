@@ -24,6 +24,7 @@ use crate::propagation::propagate_anchors;
 use crate::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
+use crate::sem2d::{Sem2dHead, Sem2dHeadConfig, Sem2dMap};
 use crate::subvoxel::{SubVoxelHead, SubVoxelHeadConfig};
 use crate::unet::{SparseUNet, SparseUNetConfig};
 use burn::nn::{Linear, LinearConfig};
@@ -121,6 +122,14 @@ pub struct SparseOccPPConfig {
     /// carries LiDAR points).
     #[config(default = 1.0)]
     pub depth_loss_weight: f64,
+    /// Not in the paper: an auxiliary per-pixel class head on the finest image level, supervised by
+    /// the voxel labels of the LiDAR points projected into the image ([`crate::sem2d`]). Only a
+    /// training signal for the image encoder; the 3D network does not read its output.
+    #[config(default = false)]
+    pub sem2d_aux: bool,
+    /// Weight of the image semantic loss (applied when the batch carries LiDAR points and targets).
+    #[config(default = 1.0)]
+    pub sem2d_loss_weight: f64,
 }
 
 impl SparseOccPPConfig {
@@ -170,16 +179,28 @@ impl SparseOccPPConfig {
         DepthGateConfig::new(self.feat_channels).with_dbound(self.depth_dbound)
     }
 
+    /// The image semantic head's configuration.
+    pub fn sem2d_config(&self) -> Sem2dHeadConfig {
+        Sem2dHeadConfig::new(self.feat_channels, self.num_classes)
+    }
+
     /// Checks every size and switch.
     pub fn validate(&self) -> Result<(), ModelError> {
         if self.depth_gate {
             self.depth_gate_config().validate()?;
         }
-        if !(self.depth_loss_weight.is_finite() && self.depth_loss_weight >= 0.0) {
-            return Err(ModelError::Config(format!(
-                "SparseOcc++: depth_loss_weight {} must be finite and >= 0",
-                self.depth_loss_weight
-            )));
+        if self.sem2d_aux {
+            self.sem2d_config().validate()?;
+        }
+        for (name, w) in [
+            ("depth_loss_weight", self.depth_loss_weight),
+            ("sem2d_loss_weight", self.sem2d_loss_weight),
+        ] {
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(ModelError::Config(format!(
+                    "SparseOcc++: {name} {w} must be finite and >= 0"
+                )));
+            }
         }
         self.anchor_config().validate()?;
         self.scf_config().validate()?;
@@ -202,6 +223,7 @@ impl SparseOccPPConfig {
             depth: self
                 .depth_gate
                 .then(|| self.depth_gate_config().init(device)),
+            sem2d: self.sem2d_aux.then(|| self.sem2d_config().init(device)),
             config: self.clone(),
         }
     }
@@ -233,6 +255,8 @@ pub struct SparseOccPP<B: Backend> {
     pub subvoxel: Option<SubVoxelHead<B>>,
     /// Depth head of the depth gate (present with `depth_gate`).
     pub depth: Option<DepthGate<B>>,
+    /// Image semantic head (present with `sem2d_aux`).
+    pub sem2d: Option<Sem2dHead<B>>,
     config: SparseOccPPConfig,
 }
 
@@ -249,6 +273,8 @@ pub struct PPOutput<B: Backend> {
     pub scf: Option<ScfPrediction<B>>,
     /// Depth map of the depth gate (`None` without it).
     pub depth: Option<DepthMap<B>>,
+    /// Class logits of the image semantic head (`None` without `sem2d_aux`).
+    pub sem2d: Option<Sem2dMap<B>>,
 }
 
 impl<B: SparseConvBackend> SparseOccPP<B> {
@@ -319,6 +345,10 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             Some(head) => Some(head.forward(feats[0].clone(), strides[0])?),
             None => None,
         };
+        let sem2d = self
+            .sem2d
+            .as_ref()
+            .map(|head| head.forward(feats[0].clone(), strides[0]));
         let gen = self
             .anchors
             .forward(feats, strides, batch, depth.as_ref())?;
@@ -383,6 +413,7 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             anchor_levels: gen.levels,
             scf,
             depth,
+            sem2d,
         })
     }
 }
@@ -552,7 +583,10 @@ impl<B: Backend> PPOutput<B> {
     /// - `scf.planar`, `scf.vertical`: CE on the SCF bins against the Algorithm-2 targets (or an L1
     ///   regression of `bin − s_max` in the regression ablation), times `scf_loss_weight`;
     /// - `depth` (only with the depth gate, not in the paper, and only when the batch has LiDAR
-    ///   points): the depth BCE of [`crate::lss::depth_loss`], times `depth_loss_weight`.
+    ///   points): the depth BCE of [`crate::lss::depth_loss`], times `depth_loss_weight`;
+    /// - `sem2d` (only with `sem2d_aux`, not in the paper, and only when the batch has LiDAR points):
+    ///   the class-weighted CE of the image semantic head ([`crate::sem2d`]), times
+    ///   `sem2d_loss_weight`.
     ///
     /// Terms whose labels are all ignored are left out. `class_weights`: `num_classes` weights.
     pub fn losses(
@@ -603,6 +637,13 @@ impl<B: Backend> PPOutput<B> {
             if cfg.depth_loss_weight != 0.0 {
                 if let Some(l) = depth.loss(batch)? {
                     out.push(("depth".to_string(), l.mul_scalar(cfg.depth_loss_weight)));
+                }
+            }
+        }
+        if let Some(sem) = &self.sem2d {
+            if cfg.sem2d_loss_weight != 0.0 {
+                if let Some(l) = sem.loss(batch, class_weights)? {
+                    out.push(("sem2d".to_string(), l.mul_scalar(cfg.sem2d_loss_weight)));
                 }
             }
         }

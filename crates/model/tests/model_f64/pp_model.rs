@@ -550,3 +550,53 @@ fn anchor_unknown_as_empty_supervises_ignored_candidates_as_empty() {
         "only {changed} anchor terms changed"
     );
 }
+
+/// The image semantic head (not in the paper, `sem2d_aux = true`): one logit per class at the finest
+/// feature level; the `sem2d` loss term appears exactly when the batch carries LiDAR points, and it
+/// sends a gradient into the image features it reads (its only purpose).
+#[test]
+fn sem2d_aux_supervises_the_finest_image_features() {
+    let cfg = tiny_config().with_sem2d_aux(true);
+    let device = Default::default();
+    let model: SparseOccPP<AD> = cfg.try_init(&device).expect("valid config");
+    let mut batch = batch::<AD>(2, 33, &device);
+    let mut feats = features::<AD>(2, 133, &device);
+    feats[0] = feats[0].clone().detach().require_grad();
+    let out = model.forward(&feats, &STRIDES, &batch).expect("forward");
+    let sem = out.sem2d.as_ref().expect("image class logits");
+    let (h, w) = (IMG_HW.0 / STRIDES[0], IMG_HW.1 / STRIDES[0]);
+    assert_eq!(sem.logits.dims(), [4, cfg.num_classes, h, w]);
+    let weights = vec![1.0; cfg.num_classes];
+    let term = |b: &occ_model::Batch<AD>| {
+        out.losses(b, &cfg, &weights)
+            .unwrap()
+            .into_iter()
+            .find(|(n, _)| n == "sem2d")
+            .map(|(_, l)| l)
+    };
+    assert!(term(&batch).is_none(), "sem2d term without points");
+    // Points spread over the whole grid volume in front of the cameras: some land in labelled voxels.
+    let g = batch.grid;
+    let pts: Vec<[f32; 3]> = (0..2000)
+        .map(|i| {
+            let f = |k: usize, n: usize| ((i * k) % n) as f64 / n as f64;
+            std::array::from_fn(|a| {
+                let span = g.dims[a] as f64 * g.voxel_size_m;
+                (g.origin_m[a] + span * f([7, 13, 29][a], [97, 89, 83][a])) as f32
+            })
+        })
+        .collect();
+    batch.points = Some(vec![pts.clone(), pts]);
+    let l = term(&batch).expect("sem2d term with points");
+    let v: f64 = l.clone().into_scalar();
+    assert!(v.is_finite() && v > 0.0, "{v}");
+    let grads = l.backward();
+    let g0 = feats[0]
+        .grad(&grads)
+        .expect("gradient into the image features");
+    let gsum: f64 = g0.abs().sum().into_scalar();
+    assert!(gsum > 0.0);
+    // The paper model has no such head.
+    let (_, plain) = run::<AD>(&tiny_config(), 2, 33);
+    assert!(plain.sem2d.is_none());
+}
