@@ -543,6 +543,32 @@ impl<B: Backend> LssOutput<B> {
     }
 }
 
+/// The feature pixel (row-major index `i * w + j` of an `h x w` map with `stride` input pixels per
+/// feature pixel) that the point `p` (metres) projects onto through `img_from_lidar`, with its depth
+/// along the optical axis; the pixel is the rounded projection (pixel centres at integer
+/// coordinates). `None` behind the camera or outside the `img_hw` image or the map.
+pub fn feature_pixel_of_point(
+    img_from_lidar: &Mat4,
+    p: [f64; 3],
+    img_hw: (usize, usize),
+    hw: (usize, usize),
+    stride: usize,
+) -> Option<(usize, f64)> {
+    let m = img_from_lidar;
+    let q: [f64; 3] =
+        std::array::from_fn(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+    let depth = q[2];
+    if !(depth.is_finite() && depth > 1e-6) {
+        return None;
+    }
+    let (u, v) = ((q[0] / depth).round(), (q[1] / depth).round());
+    if !(u >= 0.0 && v >= 0.0 && u < img_hw.1 as f64 && v < img_hw.0 as f64) {
+        return None;
+    }
+    let (j, i) = (u as usize / stride.max(1), v as usize / stride.max(1));
+    (i < hw.0 && j < hw.1).then_some((i * hw.1 + j, depth))
+}
+
 /// Depth targets per feature pixel, row-major `[B*V, h, w]`: the bin of the minimum LiDAR depth over
 /// the points whose rounded pixel lies in the pixel's `stride x stride` patch, or `-1` (no target).
 /// `None` when the batch carries no points.
@@ -564,7 +590,7 @@ pub fn depth_targets<B: Backend>(
             points.len()
         )));
     }
-    let (img_h, img_w) = batch.image_hw();
+    let img_hw = batch.image_hw();
     let d = num_bins(dbound) as i64;
     let mut min_depth = vec![f64::INFINITY; b * v * h * w];
     for (bi, pts) in points.iter().enumerate() {
@@ -573,21 +599,9 @@ pub fn depth_targets<B: Backend>(
             let base = (bi * v + vi) * h * w;
             for p in pts {
                 let p = [p[0] as f64, p[1] as f64, p[2] as f64];
-                let q: Vec<f64> = (0..3)
-                    .map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
-                    .collect();
-                let depth = q[2];
-                if !(depth.is_finite() && depth > 1e-6) {
-                    continue;
-                }
-                let (u, vv) = ((q[0] / depth).round(), (q[1] / depth).round());
-                if !(u >= 0.0 && vv >= 0.0 && u < img_w as f64 && vv < img_h as f64) {
-                    continue;
-                }
-                let (j, i) = (u as usize / stride.max(1), vv as usize / stride.max(1));
-                if i < h && j < w {
-                    let cell = &mut min_depth[base + i * w + j];
-                    *cell = cell.min(depth);
+                if let Some((cell, depth)) = feature_pixel_of_point(&m, p, img_hw, (h, w), stride) {
+                    let c = &mut min_depth[base + cell];
+                    *c = c.min(depth);
                 }
             }
         }

@@ -24,6 +24,7 @@
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::lss::feature_pixel_of_point;
 use crate::sparseocc::weighted_cross_entropy;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
@@ -124,7 +125,7 @@ impl<B: Backend> Sem2dMap<B> {
 
 /// Per-pixel class targets `[B·V, h, w]` (row-major, 255 = no label) of a feature map with
 /// `stride` input pixels per pixel: the class of the voxel of the nearest (camera depth) LiDAR point
-/// projecting into the pixel whose voxel is labelled and occupied. `None` without points or targets.
+/// projecting into the pixel (rounded, as [`crate::lss::depth_targets`]) whose voxel is labelled and occupied. `None` without points or targets.
 pub fn sem2d_targets<B: Backend>(
     batch: &Batch<B>,
     h: usize,
@@ -144,8 +145,7 @@ pub fn sem2d_targets<B: Backend>(
         )));
     }
     let grid = batch.grid;
-    let (img_h, img_w) = batch.image_hw();
-    let s = stride.max(1);
+    let img_hw = batch.image_hw();
     let mut best = vec![(f64::INFINITY, 255u8); b * v * h * w];
     for (bi, (pts, target)) in points.iter().zip(targets).enumerate() {
         if target.len() != grid.num_voxels() {
@@ -175,22 +175,10 @@ pub fn sem2d_targets<B: Backend>(
             let m = cam.img_from_lidar;
             let base = (bi * v + vi) * h * w;
             for &(p, l) in &labelled {
-                let q: [f64; 3] = std::array::from_fn(|r| {
-                    m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]
-                });
-                let depth = q[2];
-                if !(depth.is_finite() && depth > 1e-6) {
-                    continue;
-                }
-                let (u, vv) = (q[0] / depth, q[1] / depth);
-                if !(u >= 0.0 && vv >= 0.0 && u < img_w as f64 && vv < img_h as f64) {
-                    continue;
-                }
-                let (j, i) = (u as usize / s, vv as usize / s);
-                if i < h && j < w {
-                    let cell = &mut best[base + i * w + j];
-                    if depth < cell.0 {
-                        *cell = (depth, l);
+                if let Some((cell, depth)) = feature_pixel_of_point(&m, p, img_hw, (h, w), stride) {
+                    let c = &mut best[base + cell];
+                    if depth < c.0 {
+                        *c = (depth, l);
                     }
                 }
             }
