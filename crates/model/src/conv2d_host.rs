@@ -10,9 +10,17 @@
 //! weight and its shift into the bias (the standard inference-time fusion), the input is unfolded into
 //! a `[C_in·k_h·k_w, H_out·W_out]` matrix (skipped for 1x1 stride-1 convolutions, whose input already
 //! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with `matrixmultiply` on all
-//! cores. Training (autodiff) and GPU backends take burn's own `Conv2d` and `BatchNorm` forward.
+//! cores.
+//!
+//! On the CPU training backend (`Autodiff<NdArray>`) the convolution alone (BatchNorm stays burn's,
+//! with batch statistics) is one autodiff op computed the same way, with its backward as two GEMMs
+//! and a col2im per image ([`conv_autodiff`]); with the DCA op of [`crate::dca_host`] it made the
+//! demo's training step 3.4x faster. GPU backends take burn's own `Conv2d` and `BatchNorm`.
 
-use crate::host_data::{is_host_backend, is_host_f32, read, with_host_slice, Elem};
+use crate::host_data::{
+    from_ad, host_vec, is_host_autodiff, is_host_backend, is_host_f32, read, to_ad,
+    with_host_slice, Elem,
+};
 use burn::nn::conv::Conv2d;
 use burn::nn::{BatchNorm, PaddingConfig2d};
 use burn::tensor::activation::relu;
@@ -42,7 +50,11 @@ pub fn conv_bn<B: Backend>(
             return out;
         }
     }
-    let y = conv.forward(x);
+    let y = if is_host_autodiff::<B>() {
+        conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv.forward(x))
+    } else {
+        conv.forward(x)
+    };
     let y = match bn {
         Some(bn) => bn.forward(y),
         None => y,
@@ -57,7 +69,15 @@ pub fn conv_bn<B: Backend>(
 /// Padding `(top, left, bottom, right)` when the host path applies: burn-ndarray f32/f64 without
 /// autodiff, ungrouped convolution, explicit or no padding.
 fn host_plan<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
-    if !is_host_backend::<B>() || conv.groups != 1 {
+    if !is_host_backend::<B>() {
+        return None;
+    }
+    padding_of(conv)
+}
+
+/// Padding `(top, left, bottom, right)` of an ungrouped convolution with explicit or no padding.
+fn padding_of<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
+    if conv.groups != 1 {
         return None;
     }
     match conv.padding {
@@ -83,6 +103,70 @@ struct Geometry {
 }
 
 impl Geometry {
+    /// The geometry of `conv` on an input of `x_dims` with padding `(top, left, bottom, right)`;
+    /// `None` when the sizes do not fit (burn then reports the error).
+    fn of<B: Backend>(
+        conv: &Conv2d<B>,
+        x_dims: [usize; 4],
+        [top, left, bottom, right]: [usize; 4],
+    ) -> Option<Self> {
+        let [_, cin, h, w] = x_dims;
+        let [_, wcin, kh, kw] = conv.weight.dims();
+        let (stride, dilation) = (conv.stride, conv.dilation);
+        let span = |k: usize, d: usize| d * (k - 1) + 1;
+        if wcin != cin
+            || kh == 0
+            || kw == 0
+            || h + top + bottom < span(kh, dilation[0])
+            || w + left + right < span(kw, dilation[1])
+            || stride.contains(&0)
+        {
+            return None;
+        }
+        Some(Geometry {
+            h,
+            w,
+            kh,
+            kw,
+            stride,
+            dilation,
+            pad: [top, left],
+            ho: (h + top + bottom - span(kh, dilation[0])) / stride[0] + 1,
+            wo: (w + left + right - span(kw, dilation[1])) / stride[1] + 1,
+        })
+    }
+
+    /// The adjoint of [`Self::im2col`]: adds `col [C_in·k_h·k_w, H_out·W_out]` back onto the image
+    /// `[C_in, H, W]` it was unfolded from.
+    fn col2im_add<T: Elem>(&self, col: &[T], img: &mut [T]) {
+        let (hw_out, kk) = (self.ho * self.wo, self.kh * self.kw);
+        img.par_chunks_mut(self.h * self.w)
+            .enumerate()
+            .for_each(|(ci, dst)| {
+                for ky in 0..self.kh {
+                    for kx in 0..self.kw {
+                        let src = &col[(ci * kk + ky * self.kw + kx) * hw_out..][..hw_out];
+                        let dx = (kx * self.dilation[1]) as isize - self.pad[1] as isize;
+                        for oy in 0..self.ho {
+                            let iy = (oy * self.stride[0] + ky * self.dilation[0]) as isize
+                                - self.pad[0] as isize;
+                            if iy < 0 || iy >= self.h as isize {
+                                continue;
+                            }
+                            let line = &mut dst[iy as usize * self.w..(iy as usize + 1) * self.w];
+                            for (ox, &v) in src[oy * self.wo..(oy + 1) * self.wo].iter().enumerate()
+                            {
+                                let ix = (ox * self.stride[1]) as isize + dx;
+                                if ix >= 0 && ix < self.w as isize {
+                                    line[ix as usize] += v;
+                                }
+                            }
+                        }
+                    }
+                }
+            });
+    }
+
     /// `true` when the input matrix `[C_in, H·W]` already is the unfolded one.
     fn is_pointwise(&self) -> bool {
         self.kh == 1 && self.kw == 1 && self.stride == [1, 1] && self.pad == [0, 0]
@@ -139,27 +223,8 @@ fn host_forward<B: Backend, T: Elem>(
     apply_relu: bool,
 ) -> Option<Tensor<B, 4>> {
     let [n, cin, h, w] = x.dims();
-    let [cout, wcin, kh, kw] = conv.weight.dims();
-    let (stride, dilation) = (conv.stride, conv.dilation);
-    let span = |k: usize, d: usize| d * (k - 1) + 1;
-    if wcin != cin
-        || h + top + bottom < span(kh, dilation[0])
-        || w + left + right < span(kw, dilation[1])
-        || stride.contains(&0)
-    {
-        return None; // let burn report the shape error
-    }
-    let geo = Geometry {
-        h,
-        w,
-        kh,
-        kw,
-        stride,
-        dilation,
-        pad: [top, left],
-        ho: (h + top + bottom - span(kh, dilation[0])) / stride[0] + 1,
-        wo: (w + left + right - span(kw, dilation[1])) / stride[1] + 1,
-    };
+    let [cout, _, kh, kw] = conv.weight.dims();
+    let geo = Geometry::of(conv, x.dims(), [top, left, bottom, right])?;
 
     // Fold the BN (inference statistics) into the weight rows and the bias, in f64.
     let weight: Vec<T> = read(&conv.weight.val())?;
@@ -250,6 +315,243 @@ fn host_forward<B: Backend, T: Elem>(
     ))
 }
 
+/// `conv.forward(x)` on the CPU training backend (`Autodiff<NdArray<f32 | f64>>`) as one autodiff
+/// op computed like the inference path: im2col + GEMM forward; backward `dW = Σ_n dY_n · col_nᵀ`,
+/// `db = Σ dY`, `dX_n = col2im(Wᵀ · dY_n)` (burn-ndarray's own `conv2d` and its backward are direct
+/// loops). `None` on other backends, grouped or `Same`-padded convolutions, or sizes burn should
+/// report.
+fn conv_autodiff<B: Backend>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Option<Tensor<B, 4>> {
+    let pads = padding_of(conv)?;
+    let geo = Geometry::of(conv, x.dims(), pads)?;
+    if is_host_f32_autodiff::<B>() {
+        conv_autodiff_typed::<B, f32>(conv, x, geo)
+    } else {
+        conv_autodiff_typed::<B, f64>(conv, x, geo)
+    }
+}
+
+fn is_host_f32_autodiff<B: Backend>() -> bool {
+    std::any::TypeId::of::<B>()
+        == std::any::TypeId::of::<burn::backend::Autodiff<burn::backend::NdArray<f32>>>()
+}
+
+/// What the backward pass of [`conv_autodiff`] needs.
+#[derive(Debug)]
+struct ConvSaved<T> {
+    geo: Geometry,
+    n: usize,
+    cin: usize,
+    cout: usize,
+    x: Vec<T>,
+    weight: Vec<T>,
+}
+
+impl<T: Elem> ConvSaved<T> {
+    fn k(&self) -> usize {
+        self.cin * self.geo.kh * self.geo.kw
+    }
+
+    /// `[C_out, H_out·W_out]` per image: `W · col(x_n) + bias`.
+    fn forward(&self, bias: &[T]) -> Vec<T> {
+        let (geo, k, hw) = (&self.geo, self.k(), self.geo.ho * self.geo.wo);
+        let mut out = vec![T::zero(); self.n * self.cout * hw];
+        let mut col = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
+        let img_len = self.cin * geo.h * geo.w;
+        for (img, dst) in self.x.chunks(img_len).zip(out.chunks_mut(self.cout * hw)) {
+            let b_mat: &[T] = if geo.is_pointwise() {
+                img
+            } else {
+                geo.im2col(img, &mut col);
+                &col
+            };
+            // SAFETY: weight [cout, k], b_mat [k, hw], dst [cout, hw], all row-major.
+            unsafe {
+                T::gemm(
+                    self.cout,
+                    k,
+                    hw,
+                    self.weight.as_ptr(),
+                    k as isize,
+                    1,
+                    b_mat.as_ptr(),
+                    hw as isize,
+                    1,
+                    T::zero(),
+                    dst.as_mut_ptr(),
+                    hw as isize,
+                    1,
+                );
+            }
+            dst.par_chunks_mut(hw)
+                .zip(bias.par_iter())
+                .for_each(|(row, &b)| row.iter_mut().for_each(|v| *v += b));
+        }
+        out
+    }
+
+    /// `(dX, dW, db)` for the output gradient `dy [N, C_out, H_out·W_out]`.
+    fn backward(&self, dy: &[T]) -> (Vec<T>, Vec<T>, Vec<T>) {
+        let (geo, k, hw) = (&self.geo, self.k(), self.geo.ho * self.geo.wo);
+        let img_len = self.cin * geo.h * geo.w;
+        let mut dx = vec![T::zero(); self.n * img_len];
+        let mut dw = vec![T::zero(); self.cout * k];
+        let mut db = vec![T::zero(); self.cout];
+        let mut col = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
+        let mut dcol = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
+        for ((img, dyn_), dxn) in self
+            .x
+            .chunks(img_len)
+            .zip(dy.chunks(self.cout * hw))
+            .zip(dx.chunks_mut(img_len))
+        {
+            for (b, row) in db.iter_mut().zip(dyn_.chunks(hw)) {
+                for &v in row {
+                    *b += v;
+                }
+            }
+            let b_mat: &[T] = if geo.is_pointwise() {
+                img
+            } else {
+                geo.im2col(img, &mut col);
+                &col
+            };
+            let dcol_out: &mut [T] = if geo.is_pointwise() {
+                &mut dxn[..]
+            } else {
+                &mut dcol[..]
+            };
+            // SAFETY: dy_n [cout, hw]; b_mat read as its transpose [hw, k]; dw [cout, k];
+            // weight read as its transpose [k, cout]; dcol_out [k, hw]; all row-major buffers.
+            unsafe {
+                T::gemm(
+                    self.cout,
+                    hw,
+                    k,
+                    dyn_.as_ptr(),
+                    hw as isize,
+                    1,
+                    b_mat.as_ptr(),
+                    1,
+                    hw as isize,
+                    T::one(),
+                    dw.as_mut_ptr(),
+                    k as isize,
+                    1,
+                );
+                T::gemm(
+                    k,
+                    self.cout,
+                    hw,
+                    self.weight.as_ptr(),
+                    1,
+                    k as isize,
+                    dyn_.as_ptr(),
+                    hw as isize,
+                    1,
+                    T::zero(),
+                    dcol_out.as_mut_ptr(),
+                    hw as isize,
+                    1,
+                );
+            }
+            if !geo.is_pointwise() {
+                geo.col2im_add(&dcol, dxn);
+            }
+        }
+        (dx, dw, db)
+    }
+}
+
+fn conv_autodiff_typed<B: Backend, T>(
+    conv: &Conv2d<B>,
+    x: Tensor<B, 4>,
+    geo: Geometry,
+) -> Option<Tensor<B, 4>>
+where
+    T: Elem + burn::backend::ndarray::FloatNdArrayElement,
+    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+{
+    use burn::backend::autodiff::checkpoint::strategy::NoCheckpointing;
+    use burn::backend::autodiff::ops::{Backward, OpsKind};
+    use burn::backend::NdArray;
+    use burn::tensor::ops::FloatTensorOps;
+    let [n, cin, _, _] = x.dims();
+    let [cout, ..] = conv.weight.dims();
+    let bias = match &conv.bias {
+        Some(b) => b.val(),
+        None => Tensor::zeros([cout], &x.device()),
+    };
+    let x = to_ad::<B, 4, T>(x)?;
+    let weight = to_ad::<B, 4, T>(conv.weight.val())?;
+    let bias = to_ad::<B, 1, T>(bias)?;
+    let saved = ConvSaved {
+        geo,
+        n,
+        cin,
+        cout,
+        x: host_vec(&x.primitive)?,
+        weight: host_vec(&weight.primitive)?,
+    };
+    let out = saved.forward(&host_vec::<T>(&bias.primitive)?);
+    let out = NdArray::<T>::float_from_data(
+        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
+        &Default::default(),
+    );
+    let nodes = [x.node.clone(), weight.node.clone(), bias.node.clone()];
+    let result = match ConvBackward
+        .prepare::<NoCheckpointing>(nodes)
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => prep.finish(std::sync::Arc::new(saved), out),
+        OpsKind::UnTracked(prep) => prep.finish(out),
+    };
+    from_ad(result)
+}
+
+/// The backward step of [`conv_autodiff`].
+#[derive(Debug)]
+struct ConvBackward;
+
+impl<T> burn::backend::autodiff::ops::Backward<burn::backend::NdArray<T>, 3> for ConvBackward
+where
+    T: Elem + burn::backend::ndarray::FloatNdArrayElement,
+    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+{
+    type State = std::sync::Arc<ConvSaved<T>>;
+
+    fn backward(
+        self,
+        ops: burn::backend::autodiff::ops::Ops<Self::State, 3>,
+        grads: &mut burn::backend::autodiff::grads::Gradients,
+        _checkpointer: &mut burn::backend::autodiff::checkpoint::base::Checkpointer,
+    ) {
+        use burn::backend::NdArray;
+        use burn::tensor::ops::FloatTensorOps;
+        let burn::backend::autodiff::ops::Ops {
+            parents,
+            node,
+            state: saved,
+        } = ops;
+        let dy = grads.consume::<NdArray<T>>(&node);
+        let dy: Vec<T> = host_vec(&dy).expect("the output gradient of an NdArray<T> op");
+        let (dx, dw, db) = saved.backward(&dy);
+        let g = &saved.geo;
+        let outs = [
+            (dx, vec![saved.n, saved.cin, g.h, g.w]),
+            (dw, vec![saved.cout, saved.cin, g.kh, g.kw]),
+            (db, vec![saved.cout]),
+        ];
+        for (parent, (v, shape)) in parents.into_iter().zip(outs) {
+            if let Some(parent) = parent {
+                let t =
+                    NdArray::<T>::float_from_data(TensorData::new(v, shape), &Default::default());
+                grads.register::<NdArray<T>>(parent.id, t);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -327,6 +629,76 @@ mod tests {
             let got = conv_bn(&conv, None, x.clone(), false);
             let err: f64 = (got - conv.forward(x)).abs().max().into_scalar();
             assert!(err < 1e-10, "plain case k{k} s{s} d{d}: max |diff| {err}");
+        }
+    }
+
+    /// On `Autodiff<NdArray>` (training) the convolution is one op with its own backward; output and
+    /// the gradients of the input, weight and bias equal burn's `Conv2d` (direct loops) on every case.
+    #[test]
+    fn training_conv_op_equals_burn_conv_with_gradients() {
+        type A = burn::backend::Autodiff<NdArray<f64>>;
+        let device = Default::default();
+        <A as Backend>::seed(&device, 11);
+        let cases: [Case; 6] = [
+            (3, 8, 7, 2, 1, [3, 3, 3, 3], false, 23, 30),
+            (6, 5, 3, 1, 1, [1, 1, 1, 1], true, 9, 11),
+            (6, 5, 3, 2, 1, [1, 1, 1, 1], false, 10, 13),
+            (4, 7, 1, 1, 1, [0, 0, 0, 0], true, 5, 6),
+            (4, 7, 1, 2, 1, [0, 0, 0, 0], false, 7, 9),
+            (3, 4, 3, 1, 2, [2, 1, 0, 3], true, 8, 9),
+        ];
+        for (cin, cout, k, s, d, [t, l, b, r], bias, h, w) in cases {
+            let conv = Conv2dConfig::new([cin, cout], [k, k])
+                .with_stride([s, s])
+                .with_dilation([d, d])
+                .with_padding(PaddingConfig2d::Explicit(t, l, b, r))
+                .with_bias(bias)
+                .init::<A>(&device);
+            let x0 =
+                Tensor::<A, 4>::random([2, cin, h, w], Distribution::Normal(0.0, 1.0), &device);
+            let mut results = Vec::new();
+            for ours in [true, false] {
+                let x = x0.clone().detach().require_grad();
+                let y = if ours {
+                    conv_autodiff(&conv, x.clone()).expect("the training op must be taken")
+                } else {
+                    conv.forward(x.clone())
+                };
+                let r = Tensor::<A, 4>::from_data(
+                    TensorData::new(
+                        (0..y.shape().num_elements())
+                            .map(|i| ((i * 37 % 101) as f64 - 50.0) / 25.0)
+                            .collect::<Vec<_>>(),
+                        y.dims(),
+                    ),
+                    &device,
+                );
+                let grads = (y.clone() * r).sum().backward();
+                let v = |t: Tensor<burn::backend::NdArray<f64>, 4>| -> Vec<f64> {
+                    t.into_data().to_vec().unwrap()
+                };
+                let mut got = vec![
+                    v(y.inner()),
+                    v(x.grad(&grads).unwrap()),
+                    v(conv.weight.val().grad(&grads).unwrap()),
+                ];
+                if let Some(b) = &conv.bias {
+                    got.push(b.val().grad(&grads).unwrap().into_data().to_vec().unwrap());
+                }
+                results.push(got);
+            }
+            for (i, (a, b)) in results[0].iter().zip(&results[1]).enumerate() {
+                assert_eq!(a.len(), b.len());
+                let err = a
+                    .iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0, f64::max);
+                assert!(
+                    err < 1e-9,
+                    "case k{k} s{s} d{d}, tensor {i}: max |diff| {err}"
+                );
+            }
         }
     }
 

@@ -24,10 +24,11 @@
 //! The block around the attention is the usual post-norm transformer layer:
 //! `x = LN(f + W_o·DCA(f + pos))`, `x = LN(x + FFN(x))`.
 //!
-//! Cost: host work is one projection per (voxel, view) (a loop over coordinates). The sampling is
-//! either one fused host loop over the (voxel, view) hits (CPU inference: `M·L·N_s·4·D/M` multiply-adds
-//! per hit, no intermediate tensors), or, where gradients or a device are needed, one batched
-//! `grid_sample` per level over all hits, padded per image to the largest number of hits of one image.
+//! Cost: host work is one projection per (voxel, view) (a loop over coordinates). On the CPU the
+//! sampling is one host loop over the (voxel, view) hits (`M·L·N_s·4·D/M` multiply-adds per hit, no
+//! intermediate tensors; [`crate::dca_host`]), in training registered as one autodiff op with its own
+//! backward pass; on other backends (CUDA) it is one batched `grid_sample` per level over all hits,
+//! padded per image to the largest number of hits of one image.
 
 use crate::batch::CameraInput;
 use crate::error::ModelError;
@@ -403,6 +404,8 @@ impl<B: Backend> DeformableCrossAttention<B> {
         }
         if crate::host_data::is_host_backend::<B>() {
             self.aggregate_host(query, hits, feats, strides, gate)
+        } else if crate::host_data::is_host_autodiff::<B>() {
+            self.aggregate_host_autodiff(query, hits, feats, strides, gate)
         } else {
             self.aggregate_tensor_ops(query, hits, feats, strides, gate)
         }
@@ -444,11 +447,8 @@ impl<B: Backend> DeformableCrossAttention<B> {
         strides: &[usize],
         gate: Option<Tensor<B, 1>>,
     ) -> Option<Tensor<B, 2>> {
-        use rayon::prelude::*;
         let device = query.device();
         let [n, d] = query.dims();
-        let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
-        let dh = d / m;
         let gate: Option<Vec<T>> = match gate {
             Some(g) => Some(g.into_data().convert::<T>().into_vec().ok()?),
             None => None,
@@ -457,77 +457,69 @@ impl<B: Backend> DeformableCrossAttention<B> {
         // Freshly computed, unshared tensors: `into_data` hands over their buffers without copying.
         let off: Vec<T> = offsets.into_data().into_vec().ok()?;
         let wts: Vec<T> = weights.into_data().into_vec().ok()?;
-        // Channel-last value maps `[B·V, h, w, D]` per level (D head-major).
-        let mut maps = Vec::with_capacity(l);
-        for f in feats {
-            let [bv, c, h, w] = f.dims();
-            let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-            let map: Vec<T> = self.value_proj.forward(rows).into_data().into_vec().ok()?;
-            maps.push((map, h, w));
-        }
-        // Hits grouped by query (counting sort), so that each query owns its output row.
-        let mut start = vec![0usize; n + 1];
-        for &q in &hits.query {
-            start[q as usize + 1] += 1;
-        }
-        for q in 0..n {
-            start[q + 1] += start[q];
-        }
-        let mut order = vec![0usize; hits.len()];
-        let mut fill = start.clone();
-        for (hi, &q) in hits.query.iter().enumerate() {
-            order[fill[q as usize]] = hi;
-            fill[q as usize] += 1;
-        }
-        let mut out = vec![T::zero(); n * d];
-        out.par_chunks_mut(d).enumerate().for_each(|(q, acc)| {
-            for &hi in &order[start[q]..start[q + 1]] {
-                let img = hits.image[hi] as usize;
-                let [u, v] = hits.uv[hi];
-                let g = gate.as_ref().map_or(1.0, |g| g[hi].to_f64());
-                if g == 0.0 {
-                    continue;
-                }
-                for (lvl, ((map, h, w), &s)) in maps.iter().zip(strides).enumerate() {
-                    let (h, w) = (*h as i64, *w as i64);
-                    let (bx, by) = ((u + 0.5) / s as f64 - 0.5, (v + 0.5) / s as f64 - 0.5);
-                    for head in 0..m {
-                        let out = &mut acc[head * dh..(head + 1) * dh];
-                        for j in 0..p {
-                            let k = ((q * m + head) * l + lvl) * p + j;
-                            let x = bx + off[2 * k].to_f64();
-                            let y = by + off[2 * k + 1].to_f64();
-                            let (x0, y0) = (x.floor(), y.floor());
-                            let (fx, fy) = (x - x0, y - y0);
-                            let (x0, y0) = (x0 as i64, y0 as i64);
-                            let wk = wts[k].to_f64() * g;
-                            for (yy, wy) in [(y0, 1.0 - fy), (y0 + 1, fy)] {
-                                if yy < 0 || yy >= h {
-                                    continue;
-                                }
-                                for (xx, wx) in [(x0, 1.0 - fx), (x0 + 1, fx)] {
-                                    if xx < 0 || xx >= w {
-                                        continue;
-                                    }
-                                    let c = T::from_f64(wk * wx * wy);
-                                    let row = ((img as i64 * h + yy) * w + xx) as usize * d;
-                                    let src = &map[row + head * dh..row + (head + 1) * dh];
-                                    for (o, &val) in out.iter_mut().zip(src) {
-                                        *o += c * val;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-            let views = hits.views_per_query[q];
-            if views > 1 {
-                let inv = T::from_f64(1.0 / views as f64);
-                acc.iter_mut().for_each(|o| *o = *o * inv);
-            }
-        });
+        let values: Vec<T> = self.value_rows(feats).into_data().into_vec().ok()?;
+        let layout = self.sample_layout(hits, feats, strides);
+        let out = layout.forward(&values, &off, &wts, gate.as_deref());
         Some(Tensor::from_data(TensorData::new(out, [n, d]), &device))
+    }
+
+    /// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
+    /// row, column order; `D` head-major), the layout of [`crate::dca_host`].
+    fn value_rows(&self, feats: &[Tensor<B, 4>]) -> Tensor<B, 2> {
+        let rows: Vec<Tensor<B, 2>> = feats
+            .iter()
+            .map(|f| {
+                let [bv, c, h, w] = f.dims();
+                let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
+                self.value_proj.forward(rows)
+            })
+            .collect();
+        Tensor::cat(rows, 0)
+    }
+
+    fn sample_layout(
+        &self,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+    ) -> crate::dca_host::SampleLayout {
+        let dims: Vec<(usize, usize, usize)> = feats
+            .iter()
+            .map(|f| {
+                let [bv, _, h, w] = f.dims();
+                (bv, h, w)
+            })
+            .collect();
+        crate::dca_host::SampleLayout::new(
+            hits,
+            &dims,
+            strides,
+            self.num_heads,
+            self.num_points,
+            self.embed_dim,
+        )
+    }
+
+    /// [`Self::aggregate`] on `Autodiff<NdArray>`: the host loops of [`crate::dca_host`] registered
+    /// as one autodiff op (forward and backward), the same function as
+    /// [`Self::aggregate_tensor_ops`].
+    pub fn aggregate_host_autodiff(
+        &self,
+        query: Tensor<B, 2>,
+        hits: &ViewHits,
+        feats: &[Tensor<B, 4>],
+        strides: &[usize],
+        gate: Option<Tensor<B, 1>>,
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
+            return Ok(zeros);
+        }
+        let (offsets, weights) = self.sampling(query);
+        let values = self.value_rows(feats);
+        let layout = self.sample_layout(hits, feats, strides);
+        crate::dca_host::sample_autodiff(layout, values, offsets, weights, gate).ok_or_else(|| {
+            ModelError::Input("DCA: the host autodiff op needs Autodiff<NdArray<f32 | f64>>".into())
+        })
     }
 
     /// [`Self::aggregate`] composed of burn tensor ops (differentiable; any backend): the hits are

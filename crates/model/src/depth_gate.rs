@@ -33,7 +33,6 @@ use crate::loss::DepthBins;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::prelude::*;
-use burn::tensor::activation::relu;
 use burn::tensor::TensorData;
 
 /// Configuration of [`DepthGate`].
@@ -116,7 +115,8 @@ impl<B: Backend> DepthGate<B> {
         if stride == 0 {
             return Err(ModelError::Input("depth gate: stride 0".into()));
         }
-        let logits = self.conv2.forward(relu(self.conv1.forward(feat)));
+        let hidden = crate::conv2d_host::conv_bn(&self.conv1, None, feat, true);
+        let logits = crate::conv2d_host::conv_bn(&self.conv2, None, hidden, false);
         let dims = logits.dims();
         if dims[1] != bins.num_bins {
             return Err(ModelError::Config(format!(

@@ -81,3 +81,45 @@ pub(crate) fn with_host_slice<B: Backend, const D: usize, T: Elem, R>(
 pub(crate) fn read<B: Backend, const D: usize, T: Elem>(t: &Tensor<B, D>) -> Option<Vec<T>> {
     with_host_slice(t, |s: &[T]| s.to_vec())
 }
+
+/// Whether `B` is the CPU training backend `Autodiff<NdArray<f32 | f64>>` (the host autodiff ops of
+/// [`crate::dca_host`] and [`crate::conv2d_host`] then replace burn's generic kernels).
+pub(crate) fn is_host_autodiff<B: Backend>() -> bool {
+    use burn::backend::{Autodiff, NdArray};
+    use std::any::TypeId;
+    let t = TypeId::of::<B>();
+    t == TypeId::of::<Autodiff<NdArray<f32>>>() || t == TypeId::of::<Autodiff<NdArray<f64>>>()
+}
+
+/// The primitive of the CPU training backend with element type `T`.
+pub(crate) type AdTensor<T> =
+    burn::tensor::ops::FloatTensor<burn::backend::Autodiff<burn::backend::NdArray<T>>>;
+
+/// The autodiff primitive of `t` when `B` is `Autodiff<NdArray<T>>`, else `None`.
+pub(crate) fn to_ad<B: Backend, const D: usize, T>(t: Tensor<B, D>) -> Option<AdTensor<T>>
+where
+    T: burn::backend::ndarray::FloatNdArrayElement,
+    NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+{
+    let prim = t.into_primitive().tensor();
+    let any: Box<dyn std::any::Any> = Box::new(prim);
+    any.downcast::<AdTensor<T>>().ok().map(|b| *b)
+}
+
+/// Back from [`to_ad`]: `None` when `B` is not `Autodiff<NdArray<T>>`.
+pub(crate) fn from_ad<B: Backend, const D: usize, T>(t: AdTensor<T>) -> Option<Tensor<B, D>>
+where
+    T: burn::backend::ndarray::FloatNdArrayElement,
+    NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+{
+    let any: Box<dyn std::any::Any> = Box::new(t);
+    let prim = any.downcast::<B::FloatTensorPrimitive>().ok()?;
+    Some(Tensor::from_primitive(
+        burn::tensor::TensorPrimitive::Float(*prim),
+    ))
+}
+
+/// A copy of the values of a burn-ndarray primitive of element type `T`.
+pub(crate) fn host_vec<T: Elem>(t: &NdArrayTensor) -> Option<Vec<T>> {
+    T::with_slice(t, |s| s.to_vec())
+}

@@ -11,6 +11,7 @@ pub mod backbone;
 pub mod batch;
 pub mod conv2d_host;
 pub mod dca;
+mod dca_host;
 pub mod dense_baseline;
 pub mod depth_gate;
 pub mod error;

@@ -33,7 +33,6 @@ use crate::sparseocc::weighted_cross_entropy;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::prelude::*;
-use burn::tensor::activation::relu;
 
 /// Configuration of [`Sem2dHead`].
 #[derive(Config, Debug)]
@@ -91,7 +90,12 @@ impl<B: Backend> Sem2dHead<B> {
     /// - feat: `[B·V, C, h, w]` → logits `[B·V, K, h, w]`
     pub fn forward(&self, feat: Tensor<B, 4>, stride: usize) -> Sem2dMap<B> {
         Sem2dMap {
-            logits: self.conv2.forward(relu(self.conv1.forward(feat))),
+            logits: crate::conv2d_host::conv_bn(
+                &self.conv2,
+                None,
+                crate::conv2d_host::conv_bn(&self.conv1, None, feat, true),
+                false,
+            ),
             stride: stride.max(1),
         }
     }

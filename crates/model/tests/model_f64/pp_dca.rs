@@ -203,6 +203,88 @@ fn dca_host_loop_equals_tensor_ops() {
     check::<NB>(1e-4);
 }
 
+/// On `Autodiff<NdArray>` (CPU training) the sampling is one autodiff op with its own backward
+/// (`dca_host.rs`); it gives the same output and the same gradients as the tensor-op composition
+/// (`grid_sample`, which `tests/grid_sample_fixture.rs` checks against PyTorch) for the query (through
+/// the offsets and the attention weights), the image features, every DCA parameter and the gate.
+#[test]
+fn dca_host_autodiff_equals_tensor_ops_with_gradients() {
+    let device = Default::default();
+    let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
+    let mut dca = DcaConfig::new(d, FEAT_C)
+        .with_num_levels(l)
+        .with_num_heads(m)
+        .with_num_points(p)
+        .init::<AD>(&device);
+    dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 31, &device) * 3.0);
+    dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 32, &device));
+    let g = grid();
+    // Two batch items of two cameras: queries seen by 0, 1 or 2 views.
+    let coords: Vec<[i32; 4]> = (0..2)
+        .flat_map(|b| (0..48).map(move |i| [b, (i * 7) % 32, (i * 13) % 32, i % 8]))
+        .collect();
+    let cams = cameras(2);
+    let hits = project_queries(&coords, &g, &cams, IMG_HW).unwrap();
+    assert!(hits.views_per_query.contains(&2));
+    assert!(hits.views_per_query.contains(&0));
+    let feats0 = features::<AD>(2, 33, &device);
+    let query0 = randn::<AD, 2>([coords.len(), d], 34, &device);
+    let weight0 = randn::<AD, 2>([coords.len(), d], 35, &device);
+    let gate_vals: Vec<f64> = (0..hits.len())
+        .map(|i| {
+            if i % 5 == 0 {
+                0.0
+            } else {
+                0.3 + (i % 7) as f64 / 9.0
+            }
+        })
+        .collect();
+    let gate0 = Tensor::<AD, 1>::from_data(TensorData::new(gate_vals, [hits.len()]), &device);
+    for gated in [false, true] {
+        let mut results = Vec::new();
+        for host in [true, false] {
+            let feats: Vec<Tensor<AD, 4>> =
+                feats0.iter().map(|f| f.clone().require_grad()).collect();
+            let query = query0.clone().require_grad();
+            let gate = gated.then(|| gate0.clone().require_grad());
+            let out = if host {
+                dca.aggregate_host_autodiff(query.clone(), &hits, &feats, &STRIDES, gate.clone())
+            } else {
+                dca.aggregate_tensor_ops(query.clone(), &hits, &feats, &STRIDES, gate.clone())
+            }
+            .unwrap();
+            let grads = (out.clone() * weight0.clone()).sum().backward();
+            let mut got = vec![("out".to_string(), to_f64(&out))];
+            got.push(("query".into(), to_f64(&query.grad(&grads).unwrap())));
+            for (i, f) in feats.iter().enumerate() {
+                got.push((format!("feats[{i}]"), to_f64(&f.grad(&grads).unwrap())));
+            }
+            if let Some(gate) = &gate {
+                got.push(("gate".into(), to_f64(&gate.grad(&grads).unwrap())));
+            }
+            for (name, w) in [
+                ("value_proj", &dca.value_proj.weight),
+                ("sampling_offsets", &dca.sampling_offsets.weight),
+                ("attention_weights", &dca.attention_weights.weight),
+            ] {
+                got.push((name.into(), to_f64(&w.val().grad(&grads).unwrap())));
+            }
+            results.push(got);
+        }
+        for ((name, a), (_, b)) in results[0].iter().zip(&results[1]) {
+            assert_eq!(a.len(), b.len(), "{name}");
+            let scale = b.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+            assert!(scale > 0.0, "{name} is all zero");
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-9 * (1.0 + scale),
+                    "gated {gated}, {name}[{i}]: host {x} vs tensor ops {y}"
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn dca_block_shapes_and_bad_inputs() {
     let device = Default::default();
