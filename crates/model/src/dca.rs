@@ -514,12 +514,15 @@ impl<B: Backend> DeformableCrossAttention<B> {
         if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
             return Ok(zeros);
         }
-        let (offsets, weights) = self.sampling(query);
+        let (offsets, weights) = self.sampling(query.clone());
         let values = self.value_rows(feats);
         let layout = self.sample_layout(hits, feats, strides);
-        crate::dca_host::sample_autodiff(layout, values, offsets, weights, gate).ok_or_else(|| {
-            ModelError::Input("DCA: the host autodiff op needs Autodiff<NdArray<f32 | f64>>".into())
-        })
+        match crate::dca_host::sample_autodiff(layout, values, offsets, weights, gate.clone()) {
+            Some(out) => Ok(out),
+            // Another backend, or tensors of another float type than the backend's (burn 0.21 fixes
+            // a device's dtype at the first tensor of the process): the tensor-op composition.
+            None => self.aggregate_tensor_ops(query, hits, feats, strides, gate),
+        }
     }
 
     /// [`Self::aggregate`] composed of burn tensor ops (differentiable; any backend): the hits are

@@ -7,6 +7,7 @@ mod pp_common;
 #[path = "../common/so_common/mod.rs"]
 mod so_common;
 
+mod conv_train;
 mod pp_dca;
 mod pp_model;
 mod pp_targets;
