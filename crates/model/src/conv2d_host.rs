@@ -40,15 +40,8 @@ pub fn conv_bn<B: Backend>(
     x: Tensor<B, 4>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
-    if let Some(pads) = host_plan::<B>(conv) {
-        let out = if is_host_f32::<B>() {
-            host_forward::<B, f32>(conv, bn, &x, pads, apply_relu)
-        } else {
-            host_forward::<B, f64>(conv, bn, &x, pads, apply_relu)
-        };
-        if let Some(out) = out {
-            return out;
-        }
+    if let Some(out) = conv_bn_host(conv, bn, &x, apply_relu) {
+        return out;
     }
     let y = if is_host_autodiff::<B>() {
         conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv.forward(x))
@@ -63,6 +56,28 @@ pub fn conv_bn<B: Backend>(
         relu(y)
     } else {
         y
+    }
+}
+
+/// The fused host path of [`conv_bn`] alone: `None` where it does not apply (not burn-ndarray
+/// inference, grouped or non-explicit padding, or tensors whose dtype is not the backend's, since
+/// burn 0.21 fixes a device's float dtype at the first tensor of the process); [`conv_bn`] then
+/// falls back to burn's ops.
+///
+/// # Shapes
+/// - x: `[N, C_in, H, W]`
+/// - returns `[N, C_out, H_out, W_out]`
+pub fn conv_bn_host<B: Backend>(
+    conv: &Conv2d<B>,
+    bn: Option<&BatchNorm<B>>,
+    x: &Tensor<B, 4>,
+    apply_relu: bool,
+) -> Option<Tensor<B, 4>> {
+    let pads = host_plan::<B>(conv)?;
+    if is_host_f32::<B>() {
+        host_forward::<B, f32>(conv, bn, x, pads, apply_relu)
+    } else {
+        host_forward::<B, f64>(conv, bn, x, pads, apply_relu)
     }
 }
 
@@ -134,6 +149,60 @@ impl Geometry {
             ho: (h + top + bottom - span(kh, dilation[0])) / stride[0] + 1,
             wo: (w + left + right - span(kw, dilation[1])) / stride[1] + 1,
         })
+    }
+
+    /// Scratch for [`Self::unfolded`]: `[C_in·k_h·k_w, H_out·W_out]`, empty for pointwise convolutions.
+    fn col_buffer<T: Elem>(&self, cin: usize) -> Vec<T> {
+        if self.is_pointwise() {
+            Vec::new()
+        } else {
+            vec![T::zero(); cin * self.kh * self.kw * self.ho * self.wo]
+        }
+    }
+
+    /// The unfolded image `[C_in·k_h·k_w, H_out·W_out]`: `img` itself for pointwise convolutions,
+    /// else written into `col` (from [`Self::col_buffer`]).
+    fn unfolded<'a, T: Elem>(&self, img: &'a [T], col: &'a mut [T]) -> &'a [T] {
+        if self.is_pointwise() {
+            img
+        } else {
+            self.im2col(img, col);
+            col
+        }
+    }
+
+    /// `dst [C_out, H_out·W_out] = weight [C_out, k] · unfolded(img)`.
+    fn gemm_image<T: Elem>(
+        &self,
+        weight: &[T],
+        cout: usize,
+        img: &[T],
+        col: &mut [T],
+        dst: &mut [T],
+    ) {
+        let hw = self.ho * self.wo;
+        let k = weight.len() / cout.max(1);
+        let b_mat = self.unfolded(img, col);
+        debug_assert_eq!(b_mat.len(), k * hw);
+        debug_assert_eq!(dst.len(), cout * hw);
+        // SAFETY: weight [cout, k], b_mat [k, hw], dst [cout, hw], all row-major and of those sizes.
+        unsafe {
+            T::gemm(
+                cout,
+                k,
+                hw,
+                weight.as_ptr(),
+                k as isize,
+                1,
+                b_mat.as_ptr(),
+                hw as isize,
+                1,
+                T::zero(),
+                dst.as_mut_ptr(),
+                hw as isize,
+                1,
+            );
+        }
     }
 
     /// The adjoint of [`Self::im2col`]: adds `col [C_in·k_h·k_w, H_out·W_out]` back onto the image
@@ -264,37 +333,10 @@ fn host_forward<B: Backend, T: Elem>(
 
     let hw_out = geo.ho * geo.wo;
     let mut out = vec![T::zero(); n * cout * hw_out];
-    let mut col = if geo.is_pointwise() {
-        Vec::new()
-    } else {
-        vec![T::zero(); k * hw_out]
-    };
+    let mut col = geo.col_buffer::<T>(cin);
     with_host_slice(x, |input: &[T]| {
         for (img, dst) in input.chunks(cin * h * w).zip(out.chunks_mut(cout * hw_out)) {
-            let b_mat: &[T] = if geo.is_pointwise() {
-                img
-            } else {
-                geo.im2col(img, &mut col);
-                &col
-            };
-            // SAFETY: weight is [cout, k] row-major, b_mat [k, hw_out] row-major, dst [cout, hw_out].
-            unsafe {
-                T::gemm(
-                    cout,
-                    k,
-                    hw_out,
-                    weight.as_ptr(),
-                    k as isize,
-                    1,
-                    b_mat.as_ptr(),
-                    hw_out as isize,
-                    1,
-                    T::zero(),
-                    dst.as_mut_ptr(),
-                    hw_out as isize,
-                    1,
-                );
-            }
+            geo.gemm_image(&weight, cout, img, &mut col, dst);
             dst.par_chunks_mut(hw_out)
                 .zip(shift.par_iter())
                 .for_each(|(row, &s)| {
@@ -354,35 +396,12 @@ impl<T: Elem> ConvSaved<T> {
 
     /// `[C_out, H_out·W_out]` per image: `W · col(x_n) + bias`.
     fn forward(&self, bias: &[T]) -> Vec<T> {
-        let (geo, k, hw) = (&self.geo, self.k(), self.geo.ho * self.geo.wo);
+        let (geo, hw) = (&self.geo, self.geo.ho * self.geo.wo);
         let mut out = vec![T::zero(); self.n * self.cout * hw];
-        let mut col = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
+        let mut col = geo.col_buffer::<T>(self.cin);
         let img_len = self.cin * geo.h * geo.w;
         for (img, dst) in self.x.chunks(img_len).zip(out.chunks_mut(self.cout * hw)) {
-            let b_mat: &[T] = if geo.is_pointwise() {
-                img
-            } else {
-                geo.im2col(img, &mut col);
-                &col
-            };
-            // SAFETY: weight [cout, k], b_mat [k, hw], dst [cout, hw], all row-major.
-            unsafe {
-                T::gemm(
-                    self.cout,
-                    k,
-                    hw,
-                    self.weight.as_ptr(),
-                    k as isize,
-                    1,
-                    b_mat.as_ptr(),
-                    hw as isize,
-                    1,
-                    T::zero(),
-                    dst.as_mut_ptr(),
-                    hw as isize,
-                    1,
-                );
-            }
+            geo.gemm_image(&self.weight, self.cout, img, &mut col, dst);
             dst.par_chunks_mut(hw)
                 .zip(bias.par_iter())
                 .for_each(|(row, &b)| row.iter_mut().for_each(|v| *v += b));
@@ -397,8 +416,8 @@ impl<T: Elem> ConvSaved<T> {
         let mut dx = vec![T::zero(); self.n * img_len];
         let mut dw = vec![T::zero(); self.cout * k];
         let mut db = vec![T::zero(); self.cout];
-        let mut col = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
-        let mut dcol = vec![T::zero(); if geo.is_pointwise() { 0 } else { k * hw }];
+        let mut col = geo.col_buffer::<T>(self.cin);
+        let mut dcol = geo.col_buffer::<T>(self.cin);
         for ((img, dyn_), dxn) in self
             .x
             .chunks(img_len)
@@ -410,12 +429,7 @@ impl<T: Elem> ConvSaved<T> {
                     *b += v;
                 }
             }
-            let b_mat: &[T] = if geo.is_pointwise() {
-                img
-            } else {
-                geo.im2col(img, &mut col);
-                &col
-            };
+            let b_mat = geo.unfolded(img, &mut col);
             let dcol_out: &mut [T] = if geo.is_pointwise() {
                 &mut dxn[..]
             } else {
@@ -550,122 +564,5 @@ where
                 grads.register::<NdArray<T>>(parent.id, t);
             }
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use burn::backend::NdArray;
-    use burn::module::Param;
-    use burn::nn::conv::Conv2dConfig;
-    use burn::nn::BatchNormConfig;
-    use burn::tensor::Distribution;
-
-    type B = NdArray<f64>;
-
-    /// burn's own `Conv2d` -> `BatchNorm` (inference statistics) -> `relu`, called directly.
-    fn reference(conv: &Conv2d<B>, bn: &BatchNorm<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        relu(bn.forward(conv.forward(x)))
-    }
-
-    fn random_bn(c: usize, device: &burn::backend::ndarray::NdArrayDevice) -> BatchNorm<B> {
-        let mut bn = BatchNormConfig::new(c).init::<B>(device);
-        let d = Distribution::Uniform(0.5, 1.5);
-        bn.gamma = Param::from_tensor(Tensor::random([c], d, device));
-        bn.beta = Param::from_tensor(Tensor::random([c], Distribution::Normal(0.0, 1.0), device));
-        bn.running_mean = burn::module::RunningState::new(Tensor::random(
-            [c],
-            Distribution::Normal(0.0, 1.0),
-            device,
-        ));
-        bn.running_var = burn::module::RunningState::new(Tensor::random([c], d, device));
-        bn
-    }
-
-    /// (cin, cout, k, stride, dilation, padding (t, l, b, r), bias, h, w)
-    type Case = (
-        usize,
-        usize,
-        usize,
-        usize,
-        usize,
-        [usize; 4],
-        bool,
-        usize,
-        usize,
-    );
-
-    #[test]
-    fn fused_host_conv_equals_burn_conv_bn_relu() {
-        let device = Default::default();
-        <B as Backend>::seed(&device, 7);
-        let cases: [Case; 6] = [
-            (3, 8, 7, 2, 1, [3, 3, 3, 3], false, 23, 30), // ResNet stem, odd sizes
-            (6, 5, 3, 1, 1, [1, 1, 1, 1], true, 9, 11),   // FPN 3x3 with bias
-            (6, 5, 3, 2, 1, [1, 1, 1, 1], false, 10, 13), // strided 3x3
-            (4, 7, 1, 1, 1, [0, 0, 0, 0], true, 5, 6),    // pointwise (no im2col)
-            (4, 7, 1, 2, 1, [0, 0, 0, 0], false, 7, 9),   // strided 1x1 shortcut
-            (3, 4, 3, 1, 2, [2, 1, 0, 3], false, 8, 9),   // dilated, asymmetric padding
-        ];
-        for (cin, cout, k, s, d, [t, l, b, r], bias, h, w) in cases {
-            let conv = Conv2dConfig::new([cin, cout], [k, k])
-                .with_stride([s, s])
-                .with_dilation([d, d])
-                .with_padding(PaddingConfig2d::Explicit(t, l, b, r))
-                .with_bias(bias)
-                .init::<B>(&device);
-            assert!(
-                host_plan::<B>(&conv).is_some(),
-                "the host path must be taken"
-            );
-            let bn = random_bn(cout, &device);
-            let x = Tensor::<B, 4>::random([2, cin, h, w], Distribution::Normal(0.0, 1.0), &device);
-            let want = reference(&conv, &bn, x.clone());
-            let got = conv_bn(&conv, Some(&bn), x.clone(), true);
-            assert_eq!(got.dims(), want.dims(), "case k{k} s{s} d{d}");
-            let err: f64 = (got - want).abs().max().into_scalar();
-            assert!(err < 1e-10, "case k{k} s{s} d{d}: max |diff| {err}");
-            // Without BN and ReLU: the plain convolution.
-            let got = conv_bn(&conv, None, x.clone(), false);
-            let err: f64 = (got - conv.forward(x)).abs().max().into_scalar();
-            assert!(err < 1e-10, "plain case k{k} s{s} d{d}: max |diff| {err}");
-        }
-    }
-
-    #[test]
-    fn f32_host_conv_matches_f64() {
-        type B32 = NdArray<f32>;
-        let device = Default::default();
-        <B as Backend>::seed(&device, 3);
-        let conv = Conv2dConfig::new([16, 24], [3, 3])
-            .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
-            .init::<B>(&device);
-        let bn = random_bn(24, &device);
-        let x = Tensor::<B, 4>::random([1, 16, 12, 17], Distribution::Normal(0.0, 1.0), &device);
-        let want = reference(&conv, &bn, x.clone());
-        let to32 =
-            |t: Tensor<B, 1>| Tensor::<B32, 1>::from_data(t.into_data().convert::<f32>(), &device);
-        let mut conv32 = Conv2dConfig::new([16, 24], [3, 3])
-            .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
-            .init::<B32>(&device);
-        conv32.weight = Param::from_tensor(Tensor::from_data(
-            conv.weight.val().into_data().convert::<f32>(),
-            &device,
-        ));
-        conv32.bias = conv
-            .bias
-            .as_ref()
-            .map(|b| Param::from_tensor(to32(b.val())));
-        let mut bn32 = BatchNormConfig::new(24).init::<B32>(&device);
-        bn32.gamma = Param::from_tensor(to32(bn.gamma.val()));
-        bn32.beta = Param::from_tensor(to32(bn.beta.val()));
-        bn32.running_mean = burn::module::RunningState::new(to32(bn.running_mean.value()));
-        bn32.running_var = burn::module::RunningState::new(to32(bn.running_var.value()));
-        let x32 = Tensor::<B32, 4>::from_data(x.into_data().convert::<f32>(), &device);
-        let got = conv_bn(&conv32, Some(&bn32), x32, true);
-        let got = Tensor::<B, 4>::from_data(got.into_data().convert::<f64>(), &device);
-        let err: f64 = (got - want).abs().max().into_scalar();
-        assert!(err < 1e-4, "f32 max |diff| {err}");
     }
 }

@@ -4,6 +4,7 @@
 #[path = "../common/so_common/mod.rs"]
 mod so_common;
 
+mod conv_host;
 mod image_encoder;
 mod pp_overfit;
 mod so_overfit;
