@@ -46,6 +46,11 @@ pub struct DataConfig {
     /// Training augmentation: rotation range (degrees).
     #[serde(default = "rot")]
     pub rot_lim_deg: (f64, f64),
+    /// Training augmentation: probability of mirroring the whole sample across the grid's x-z centre
+    /// plane (image flipped, cameras re-folded, labels along y, LiDAR points; MonoScene's `fliplr`,
+    /// `crate::mirror`). Default 0 (off); applied only when `train.augment` is on.
+    #[serde(default)]
+    pub mirror_prob: f64,
 }
 
 fn resize_lim() -> (f64, f64) {

@@ -114,6 +114,8 @@ pub struct KittiDataset {
     map: LearningMap,
     /// Load LiDAR points (depth supervision).
     pub load_points: bool,
+    /// Training: probability of the lateral mirror ([`crate::mirror`]).
+    pub mirror_prob: f64,
 }
 
 impl KittiDataset {
@@ -159,6 +161,7 @@ impl KittiDataset {
             pipeline,
             map: LearningMap::semantic_kitti(),
             load_points: false,
+            mirror_prob: 0.0,
         })
     }
 
@@ -267,6 +270,8 @@ pub struct SurroundDataset {
     pipeline: ImagePipelineConfig,
     /// Load LiDAR points (depth supervision).
     pub load_points: bool,
+    /// Training: probability of the lateral mirror ([`crate::mirror`]).
+    pub mirror_prob: f64,
 }
 
 impl SurroundDataset {
@@ -369,6 +374,7 @@ impl SurroundDataset {
             gt_root,
             pipeline,
             load_points: false,
+            mirror_prob: 0.0,
         })
     }
 
@@ -549,22 +555,32 @@ impl Dataset {
         sequences: &[String],
         exclude: &[String],
     ) -> Result<Self, TrainError> {
-        match cfg.format {
-            DatasetFormat::SemanticKitti => Ok(Dataset::Kitti(KittiDataset::open(
-                root,
-                sequences,
-                cfg.pipeline(),
-            )?)),
-            f => Ok(Dataset::Surround(SurroundDataset::open(
-                root,
-                f,
-                sequences,
-                exclude,
-                cfg.pipeline(),
-                cfg.gt_dir.as_deref(),
-                cfg.nuscenes_version.as_deref(),
-            )?)),
+        if !(0.0..=1.0).contains(&cfg.mirror_prob) {
+            return Err(TrainError::Config(format!(
+                "data.mirror_prob must be in [0, 1], got {}",
+                cfg.mirror_prob
+            )));
         }
+        Ok(match cfg.format {
+            DatasetFormat::SemanticKitti => {
+                let mut d = KittiDataset::open(root, sequences, cfg.pipeline())?;
+                d.mirror_prob = cfg.mirror_prob;
+                Dataset::Kitti(d)
+            }
+            f => {
+                let mut d = SurroundDataset::open(
+                    root,
+                    f,
+                    sequences,
+                    exclude,
+                    cfg.pipeline(),
+                    cfg.gt_dir.as_deref(),
+                    cfg.nuscenes_version.as_deref(),
+                )?;
+                d.mirror_prob = cfg.mirror_prob;
+                Dataset::Surround(d)
+            }
+        })
     }
 
     /// The layout.
@@ -603,16 +619,31 @@ impl Dataset {
             Dataset::Surround(d) => d.load_points = on,
         }
     }
-    /// Loads frame `i`; with `rng`, applies the training augmentation.
+    /// Loads frame `i`; with `rng`, applies the training augmentation: the image augmentation per
+    /// camera, then the lateral mirror of the whole sample with probability `mirror_prob`.
     pub fn load<R: Rng + ?Sized>(
         &self,
         i: usize,
         rng: Option<&mut R>,
     ) -> Result<Sample, TrainError> {
-        match self {
-            Dataset::Kitti(d) => d.load(i, rng),
-            Dataset::Surround(d) => d.load(i, rng),
+        let p = match self {
+            Dataset::Kitti(d) => d.mirror_prob,
+            Dataset::Surround(d) => d.mirror_prob,
+        };
+        let Some(r) = rng else {
+            return match self {
+                Dataset::Kitti(d) => d.load::<R>(i, None),
+                Dataset::Surround(d) => d.load::<R>(i, None),
+            };
+        };
+        let mut s = match self {
+            Dataset::Kitti(d) => d.load(i, Some(&mut *r))?,
+            Dataset::Surround(d) => d.load(i, Some(&mut *r))?,
+        };
+        if p > 0.0 && r.random::<f64>() < p {
+            crate::mirror::mirror_sample_y(&mut s, &self.grid())?;
         }
+        Ok(s)
     }
 
     /// Writes the prediction of frame `i` (training ids, flat `[X][Y][Z]`) below `out_root` in the

@@ -4,13 +4,14 @@
 //! chromaticity: the top face of every labelled ground voxel with free space above it is projected
 //! into the processed image, and the pixel's colour must name the voxel's class (nearest base
 //! colour among the five ground classes) for most of them — with and without the training
-//! augmentation. A one-voxel shift or a wrong crop/flip convention drops the agreement sharply.
+//! augmentation and the lateral mirror (`occ_train::mirror`). A one-voxel shift or a wrong crop/flip convention drops the agreement sharply.
 
 use occ_data::image::{IMAGENET_MEAN, IMAGENET_STD};
 use occ_data::synthetic::classes::BASE_COLOR;
 use occ_data::synthetic::{generate, Preset, SynthConfig};
 use occ_geometry::{project_with, VoxelGrid};
 use occ_train::dataset::{Dataset, Sample};
+use occ_train::mirror::mirror_sample_y;
 use occ_train::RunConfig;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -110,6 +111,9 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
     let cfg = RunConfig::from_toml(&text, "synthetic_tiny.toml").unwrap();
     let ds = Dataset::open(&t.0, &cfg.data, &["00".into()], &[]).unwrap();
     let grid = ds.grid();
+    let mut data_mirror = cfg.data.clone();
+    data_mirror.mirror_prob = 1.0;
+    let ds_mirror = Dataset::open(&t.0, &data_mirror, &["00".into()], &[]).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     for i in 0..ds.len() {
         let plain = ds.load::<ChaCha8Rng>(i, None).unwrap();
@@ -123,6 +127,16 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
             off < a - 0.1,
             "frame {i}: shift not detected ({off:.3} vs {a:.3})"
         );
+        // The lateral mirror (image flipped, cameras re-folded, labels reversed along y) keeps it.
+        let mut mirrored = plain.clone();
+        mirror_sample_y(&mut mirrored, &grid).unwrap();
+        assert_ne!(mirrored.target, plain.target);
+        let (n, a) = agreement(&mirrored, &grid, 0.0);
+        eprintln!("frame {i}: mirrored: {n} boundary faces, agreement {a:.3}");
+        assert!(
+            n > 80 && a > 0.75,
+            "frame {i} mirrored: {n} faces, agreement {a:.3}"
+        );
         for k in 0..3 {
             let aug = ds.load(i, Some(&mut rng)).unwrap();
             let (n, a) = agreement(&aug, &grid, 0.0);
@@ -130,6 +144,16 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
             assert!(
                 n > 60 && a > 0.75,
                 "frame {i} augmented: {n} faces, agreement {a:.3}"
+            );
+            // Augmented and always mirrored (`data.mirror_prob = 1`).
+            let aug = ds_mirror.load(i, Some(&mut rng)).unwrap();
+            let (n, a) = agreement(&aug, &grid, 0.0);
+            eprintln!(
+                "frame {i}: augmented and mirrored #{k}: {n} boundary faces, agreement {a:.3}"
+            );
+            assert!(
+                n > 60 && a > 0.75,
+                "frame {i} augmented and mirrored: {n} faces, agreement {a:.3}"
             );
         }
     }
