@@ -103,6 +103,55 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 kept_occ_above
             );
         }
+        line += &format!(" | stats {:?}", out.out.stats);
+        if let (Some(pred), Some(tg)) = (&out.scf, &t.scf) {
+            // Planar SCF: histogram of target and predicted signed distance (bin - s_max).
+            let am = argmax1(&pred.planar)?;
+            let sm = pred.s_max_planar as i64;
+            let (mut ht, mut hp) = (
+                vec![0usize; 2 * sm as usize + 1],
+                vec![0usize; 2 * sm as usize + 1],
+            );
+            for (&t, &p) in tg.planar.iter().zip(&am) {
+                if t != 255 {
+                    ht[t as usize] += 1;
+                    hp[p as usize] += 1;
+                }
+            }
+            line += &format!(" | scf planar s=-{sm}..{sm}: target {ht:?} predicted {hp:?}");
+            let neg_p = pred.s_planar.iter().filter(|&&v| v < 0).count();
+            let neg_v = pred.s_vertical.iter().filter(|&&v| v < 0).count();
+            let new = occ_model::propagation::propagated_voxels(
+                &pred.coords,
+                &pred.s_planar,
+                &pred.s_vertical,
+                pred.dims,
+                pred.decomposition,
+            )?;
+            let set: std::collections::HashSet<_> = pred.coords.iter().copied().collect();
+            let (mut rmax, mut holes) = (0i32, 0usize);
+            for (c, &sp) in pred.coords.iter().zip(&pred.s_planar) {
+                if sp < 0 {
+                    rmax = rmax.max(-sp);
+                    for dx in -1..=1 {
+                        for dy in -1..=1 {
+                            let (x, y) = (c[1] + dx, c[2] + dy);
+                            let inside = x >= 0
+                                && y >= 0
+                                && (x as usize) < pred.dims[0]
+                                && (y as usize) < pred.dims[1];
+                            if inside && !set.contains(&[c[0], x, y, c[3]]) {
+                                holes += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            line += &format!(
+                " | decoded s<0: planar {neg_p} (max radius {rmax}, 3x3 neighbours not anchors {holes}) vertical {neg_v}; recomputed new voxels {}",
+                new.len()
+            );
+        }
         println!("{line}");
         if let (Some(lvl), Some(labels)) = (out.anchor_levels.last(), t.anchor_labels.last()) {
             let am = argmax1(&lvl.logits)?;

@@ -108,7 +108,12 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synthetic_tiny.toml"),
     )
     .unwrap();
-    let cfg = RunConfig::from_toml(&text, "synthetic_tiny.toml").unwrap();
+    let mut cfg = RunConfig::from_toml(&text, "synthetic_tiny.toml").unwrap();
+    // The full image augmentation of the paper configs (the demo config keeps only the mirror).
+    cfg.data.resize_lim = (-0.06, 0.11);
+    cfg.data.flip_prob = 0.5;
+    cfg.data.rot_lim_deg = (-5.4, 5.4);
+    cfg.data.mirror_prob = 0.0;
     let ds = Dataset::open(&t.0, &cfg.data, &["00".into()], &[]).unwrap();
     let grid = ds.grid();
     let mut data_mirror = cfg.data.clone();
