@@ -624,24 +624,16 @@ impl Dataset {
     pub fn load<R: Rng + ?Sized>(
         &self,
         i: usize,
-        rng: Option<&mut R>,
+        mut rng: Option<&mut R>,
     ) -> Result<Sample, TrainError> {
-        let p = match self {
-            Dataset::Kitti(d) => d.mirror_prob,
-            Dataset::Surround(d) => d.mirror_prob,
+        let (mut s, p) = match self {
+            Dataset::Kitti(d) => (d.load(i, rng.as_deref_mut())?, d.mirror_prob),
+            Dataset::Surround(d) => (d.load(i, rng.as_deref_mut())?, d.mirror_prob),
         };
-        let Some(r) = rng else {
-            return match self {
-                Dataset::Kitti(d) => d.load::<R>(i, None),
-                Dataset::Surround(d) => d.load::<R>(i, None),
-            };
-        };
-        let mut s = match self {
-            Dataset::Kitti(d) => d.load(i, Some(&mut *r))?,
-            Dataset::Surround(d) => d.load(i, Some(&mut *r))?,
-        };
-        if p > 0.0 && r.random::<f64>() < p {
-            crate::mirror::mirror_sample_y(&mut s, &self.grid())?;
+        if let Some(r) = rng.filter(|_| p > 0.0) {
+            if r.random::<f64>() < p {
+                crate::mirror::mirror_sample_y(&mut s, &self.grid())?;
+            }
         }
         Ok(s)
     }
