@@ -183,8 +183,11 @@ impl Geometry {
         let hw = self.ho * self.wo;
         let k = weight.len() / cout.max(1);
         let b_mat = self.unfolded(img, col);
-        debug_assert_eq!(b_mat.len(), k * hw);
-        debug_assert_eq!(dst.len(), cout * hw);
+        // Checked in release too (once per image): the GEMM below reads and writes through raw pointers.
+        assert!(
+            weight.len() == cout * k && b_mat.len() == k * hw && dst.len() == cout * hw,
+            "conv2d_host: GEMM operand sizes do not match the geometry"
+        );
         // SAFETY: weight [cout, k], b_mat [k, hw], dst [cout, hw], all row-major and of those sizes.
         unsafe {
             T::gemm(
