@@ -136,6 +136,10 @@ pub fn run_with(
     crate::util::write_json(&out.join("grid.json"), &ds.grid())?;
 
     let device = backend::device();
+    // Seeded initial weights (`train.seed`): burn draws parameter initialisations from the backend's
+    // generator, which is seeded from the OS unless set, so without this two runs of the same config
+    // start from different networks.
+    <Train as burn::tensor::backend::Backend>::seed(&device, cfg.train.seed);
     let model: OccNet<Train> = cfg.model.init(&device)?;
     eprintln!(
         "training {} on {} frames ({}), {} steps, {} parameters, {}",
@@ -221,6 +225,7 @@ pub fn validate_on(
         &ds,
         pred_root,
         &backend::device(),
+        cfg.data.test_mirror,
         &mut |d, t, _, _| {
             pb.set_length(t as u64);
             pb.set_position(d as u64);

@@ -204,9 +204,12 @@ impl SampleLayout {
         let gate = saved.gate.as_deref();
         let mut d_off = vec![T::zero(); self.n * t * 2];
         let mut d_wts = vec![T::zero(); self.n * t];
-        // Few large chunks: each carries its own value-gradient buffer.
-        let chunk = self.n.div_ceil(4 * rayon::current_num_threads()).max(64);
-        let (d_values, d_gate) = d_off
+        // Few large chunks, each with its own value-gradient buffer. Their number does not depend on
+        // the thread count and the buffers are summed in chunk order afterwards (not by rayon's
+        // `reduce`, whose tree follows work stealing), so the gradient is bitwise the same in every
+        // run and with any number of threads.
+        let chunk = self.n.div_ceil(DVALUE_CHUNKS).max(64);
+        let parts: Vec<ChunkGrads<T>> = d_off
             .par_chunks_mut(chunk * t * 2)
             .zip(d_wts.par_chunks_mut(chunk * t))
             .enumerate()
@@ -259,14 +262,15 @@ impl SampleLayout {
                 }
                 (d_values, d_gate)
             })
-            .reduce(
-                || (vec![T::zero(); self.num_rows * d], Vec::new()),
-                |(mut a, mut ga), (b, gb)| {
-                    a.iter_mut().zip(&b).for_each(|(x, &y)| *x += y);
-                    ga.extend(gb);
-                    (a, ga)
-                },
-            );
+            .collect();
+        let mut parts = parts.into_iter();
+        let (mut d_values, mut d_gate) = parts
+            .next()
+            .unwrap_or_else(|| (vec![T::zero(); self.num_rows * d], Vec::new()));
+        for (b, gb) in parts {
+            d_values.iter_mut().zip(&b).for_each(|(x, &y)| *x += y);
+            d_gate.extend(gb);
+        }
         let mut gate_grad = vec![0.0f64; self.num_hits()];
         for (hi, v) in d_gate {
             gate_grad[hi] += v;
@@ -275,6 +279,12 @@ impl SampleLayout {
         (d_values, d_off, d_wts, gate_grad)
     }
 }
+
+/// Query chunks of the backward pass (each carries a value-gradient buffer of the whole value map).
+const DVALUE_CHUNKS: usize = 8;
+
+/// One chunk's value gradient and its `(hit, gate gradient)` contributions.
+type ChunkGrads<T> = (Vec<T>, Vec<(usize, f64)>);
 
 /// Host copies of the forward inputs, kept for the backward pass.
 #[derive(Debug)]
