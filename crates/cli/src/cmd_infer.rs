@@ -55,6 +55,11 @@ pub struct InferArgs {
     /// Render this many frames (camera overlay | prediction | ground truth when labelled).
     #[arg(long, default_value_t = 2)]
     pub render: usize,
+    /// Test-time mirror augmentation: average each frame's class probabilities with those of its
+    /// mirror image (twice the forward time). On by default when the run's config sets
+    /// `data.test_mirror`.
+    #[arg(long)]
+    pub test_mirror: bool,
 }
 
 /// Loads a model and its configuration from a run folder (or its checkpoint/ folder).
@@ -122,7 +127,10 @@ pub fn run(args: &InferArgs) -> Result<()> {
         (None, Some(c), true) => {
             let cfg = RunConfig::load(c)?;
             let grid = grid_for(cfg.data.format, cfg.model.full_dims)?;
-            let model: OccNet<Infer> = cfg.model.init(&backend::device())?;
+            let device = backend::device();
+            // The same random network in every run (the config's `train.seed`), as in `bench`.
+            <Infer as burn::tensor::backend::Backend>::seed(&device, cfg.train.seed);
+            let model: OccNet<Infer> = cfg.model.init(&device)?;
             (cfg, grid, model)
         }
         _ => bail!("give either --checkpoint RUN, or --config C --random-weights"),
@@ -131,10 +139,12 @@ pub fn run(args: &InferArgs) -> Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let device = backend::device();
     let map = LearningMap::semantic_kitti();
+    let test_mirror = args.test_mirror || cfg.data.test_mirror;
     let mut summary = serde_json::json!({
         "model": cfg.model.kind.name(),
         "device": backend::describe(),
         "weights": if args.random_weights { "random" } else { "checkpoint" },
+        "test_mirror": test_mirror,
     });
     match (&args.data, &args.image) {
         (Some(data), None) => {
@@ -156,17 +166,24 @@ pub fn run(args: &InferArgs) -> Result<()> {
             }
             let pb = progress::bar(ds.len() as u64, "infer");
             let mut times = Vec::new();
-            let written = predict_dataset(&model, &ds, &args.out, &device, &mut |d, t, f, p| {
-                pb.set_length(t as u64);
-                pb.set_position(d as u64);
-                times.push(p.seconds);
-                if std::env::var_os("CI").is_some() || !console_is_tty() {
-                    eprintln!(
-                        "  {}/{}: {:.3} s, voxels {:?}",
-                        f.sequence, f.frame, p.seconds, p.stats
-                    );
-                }
-            })?;
+            let written = predict_dataset(
+                &model,
+                &ds,
+                &args.out,
+                &device,
+                test_mirror,
+                &mut |d, t, f, p| {
+                    pb.set_length(t as u64);
+                    pb.set_position(d as u64);
+                    times.push(p.seconds);
+                    if std::env::var_os("CI").is_some() || !console_is_tty() {
+                        eprintln!(
+                            "  {}/{}: {:.3} s, voxels {:?}",
+                            f.sequence, f.frame, p.seconds, p.stats
+                        );
+                    }
+                },
+            )?;
             pb.finish_and_clear();
             for (i, (path, _)) in written.iter().enumerate().take(args.render) {
                 let out = render_frame(&ds, data, i, path, grid, &args.out)?;
@@ -196,7 +213,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
                 bail!("--image needs --calib (KITTI calib.txt with P2 and Tr)");
             };
             let sample = load_single_image(image, calib, &cfg.data.pipeline())?;
-            let pred = predict_sample(&model, &sample, grid, &device)?;
+            let pred = predict_sample(&model, &sample, grid, &device, test_mirror)?;
             let name = sample.frame.frame.clone();
             let label_p = args.out.join(format!("{name}.label"));
             sk::write_label_raw(&label_p, &map.inverse_remap(&pred.classes))?;

@@ -142,6 +142,34 @@ fn train_resume_infer_eval_and_bad_input() {
     let label = pred.join("sequences/08/predictions/000000.label");
     assert_eq!(std::fs::metadata(&label).unwrap().len(), 128 * 128 * 16 * 2);
     assert!(pred.join("renders/08_000000.png").exists());
+    // The same with test-time mirror averaging.
+    let pred_m = root.join("pred_mirror");
+    ok(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir),
+        "--data",
+        p(&data),
+        "--sequences",
+        "08",
+        "--out",
+        p(&pred_m),
+        "--render",
+        "0",
+        "--test-mirror",
+    ]);
+    let label_m = pred_m.join("sequences/08/predictions/000000.label");
+    assert_eq!(
+        std::fs::metadata(&label_m).unwrap().len(),
+        128 * 128 * 16 * 2
+    );
+    let summary_m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(pred_m.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        summary_m["test_mirror"],
+        serde_json::json!(true),
+        "{summary_m}"
+    );
     let json = root.join("eval.json");
     ok(&[
         "eval",
@@ -255,6 +283,46 @@ fn train_resume_infer_eval_and_bad_input() {
         p(&root.join("p4")),
     ]);
     assert!(e.contains("05"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The loss of the first step of a fresh run (the initial weights on the first sample, before any
+/// update).
+fn first_loss(cfg: &Path, data: &Path, out: &Path) -> String {
+    ok(&[
+        "train",
+        "--config",
+        p(cfg),
+        "--data",
+        p(data),
+        "--out",
+        p(out),
+        "--steps",
+        "1",
+        "--val-sequences",
+        "",
+    ]);
+    let log = std::fs::read_to_string(out.join("train_log.csv")).unwrap();
+    let line = log.lines().find(|l| l.starts_with("1,")).expect("step 1");
+    line.split(',').nth(2).unwrap().to_string()
+}
+
+/// `train.seed` fixes the initial weights: two fresh runs of one config start from the same network
+/// (the same first-step loss, to the digit), another seed from another one.
+#[test]
+fn train_seed_fixes_the_initial_weights() {
+    let root = tmp("seed");
+    let data = root.join("data");
+    ok(&["synth", "--out", p(&data), "--sequences", "00:1"]);
+    let cfg0 = root.join("seed0.toml");
+    std::fs::write(&cfg0, TINY.replace("lr = 1e-3", "lr = 1e-3\nseed = 3")).unwrap();
+    let cfg1 = root.join("seed1.toml");
+    std::fs::write(&cfg1, TINY.replace("lr = 1e-3", "lr = 1e-3\nseed = 4")).unwrap();
+    let a = first_loss(&cfg0, &data, &root.join("a"));
+    let b = first_loss(&cfg0, &data, &root.join("b"));
+    let c = first_loss(&cfg1, &data, &root.join("c"));
+    assert_eq!(a, b, "same seed, different first losses");
+    assert_ne!(a, c, "seeds 3 and 4 gave the same first loss {a}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -28,6 +28,54 @@ impl<B: Backend> ModelOutput<B> {
             .reduce(|a, b| a + b)
     }
 
+    /// Dense full-resolution class probabilities `[B][X*Y*Z*C]` (`C = num_classes`, class fastest):
+    /// the softmax of each predicted site, copied to its `upsample^3` children; sites that were not
+    /// predicted are certainly empty (probability 1 for class 0). Its argmax is
+    /// [`Self::dense_prediction`] (up to ties); averaging it over test-time augmentations is what it
+    /// is for.
+    pub fn dense_probabilities(&self, batch_size: usize, full_dims: [usize; 3]) -> Vec<Vec<f32>> {
+        let [fx, fy, fz] = full_dims;
+        let c = self.logits.dims()[1].max(1);
+        let mut out = vec![vec![0f32; fx * fy * fz * c]; batch_size];
+        for grid in &mut out {
+            grid.iter_mut().step_by(c).for_each(|p| *p = 1.0);
+        }
+        if self.coords.is_empty() {
+            return out;
+        }
+        let probs: Vec<f32> = burn::tensor::activation::softmax(self.logits.clone(), 1)
+            .into_data()
+            .convert::<f32>()
+            .to_vec::<f32>()
+            .unwrap_or_default();
+        if probs.len() != self.coords.len() * c {
+            return out;
+        }
+        let u = self.upsample.max(1);
+        for (site, p) in self.coords.iter().zip(probs.chunks(c)) {
+            let b = site[0] as usize;
+            if b >= batch_size {
+                continue;
+            }
+            for dx in 0..u {
+                for dy in 0..u {
+                    for dz in 0..u {
+                        let (x, y, z) = (
+                            site[1] as usize * u + dx,
+                            site[2] as usize * u + dy,
+                            site[3] as usize * u + dz,
+                        );
+                        if x < fx && y < fy && z < fz {
+                            let i = ((x * fy + y) * fz + z) * c;
+                            out[b][i..i + c].copy_from_slice(p);
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// Dense full-resolution class grids `[B][X*Y*Z]`: argmax at each predicted site, copied to its
     /// `upsample^3` children; sites that were not predicted are empty (0).
     pub fn dense_prediction(&self, batch_size: usize, full_dims: [usize; 3]) -> Vec<Vec<u8>> {
@@ -66,5 +114,56 @@ impl<B: Backend> ModelOutput<B> {
             }
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    type B = NdArray<f32>;
+
+    #[test]
+    fn dense_probabilities_are_the_softmax_at_the_sites_and_empty_elsewhere() {
+        let device = Default::default();
+        let logits = Tensor::<B, 2>::from_data(
+            TensorData::new(vec![0.0f32, 2.0, -1.0, 1.0, 0.5, 3.0], [2, 3]),
+            &device,
+        );
+        let out = ModelOutput::<B> {
+            coords: vec![[0, 0, 1, 0], [1, 1, 0, 1]],
+            logits,
+            out_dims: [2, 2, 2],
+            upsample: 2,
+            losses: vec![],
+            stats: vec![],
+        };
+        let full = [4, 4, 4];
+        let probs = out.dense_probabilities(2, full);
+        let classes = out.dense_prediction(2, full);
+        assert_eq!(probs.len(), 2);
+        for (b, (p, cls)) in probs.iter().zip(&classes).enumerate() {
+            assert_eq!(p.len(), 64 * 3);
+            for (v, pv) in p.chunks(3).enumerate() {
+                assert!(
+                    (pv.iter().sum::<f32>() - 1.0).abs() < 1e-6,
+                    "item {b} voxel {v}"
+                );
+                let arg = (0..3).max_by(|&i, &j| pv[i].total_cmp(&pv[j])).unwrap();
+                assert_eq!(arg as u8, cls[v], "item {b} voxel {v}");
+            }
+        }
+        // Site (0, 0, 1, 0) covers full-resolution x 0..2, y 2..4, z 0..2 of item 0: voxel (1, 3, 1).
+        let e = [0.0f32.exp(), 2.0f32.exp(), (-1.0f32).exp()];
+        let s: f32 = e.iter().sum();
+        let (x, y, z) = (1, 3, 1);
+        let i = ((x * 4 + y) * 4 + z) * 3;
+        for k in 0..3 {
+            assert!((probs[0][i + k] - e[k] / s).abs() < 1e-6);
+        }
+        // A voxel no site covers is certainly empty.
+        assert_eq!(&probs[0][0..3], &[1.0, 0.0, 0.0]);
+        assert_eq!(classes[1][((2 * 4) * 4 + 2) as usize], 2);
     }
 }

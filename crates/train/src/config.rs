@@ -51,6 +51,10 @@ pub struct DataConfig {
     /// `crate::mirror`). Default 0 (off); applied only when `train.augment` is on.
     #[serde(default)]
     pub mirror_prob: f64,
+    /// Test-time mirror augmentation in validation and `infer`: average the class probabilities of
+    /// each frame and its mirror image (`crate::infer::predict_sample`). Default off.
+    #[serde(default)]
+    pub test_mirror: bool,
 }
 
 fn resize_lim() -> (f64, f64) {

@@ -3,6 +3,7 @@
 //! `labels.npz`, nuScenes-Occupancy sparse `.npy`).
 
 use crate::dataset::{camera_input, collate, Dataset, FrameRef, Sample};
+use crate::mirror::mirror_sample_y;
 use crate::TrainError;
 use occ_data::formats::semantic_kitti as sk;
 use occ_data::image::{process_image, read_image, ImagePipelineConfig};
@@ -24,45 +25,139 @@ pub struct Prediction {
 }
 
 /// Runs the model on one sample (its targets, if any, are not used).
+///
+/// With `test_mirror`, test-time mirror augmentation: the model also sees the sample mirrored across
+/// the grid's x-z centre plane ([`mirror_sample_y`]: image flipped, cameras re-folded), its class
+/// probabilities are mirrored back, and the class of each voxel is the argmax of the mean of the
+/// two (the test-time counterpart of the `data.mirror_prob` training augmentation; twice the forward
+/// time).
 pub fn predict_sample<B: SparseConvBackend>(
     model: &OccNet<B>,
     sample: &Sample,
     grid: VoxelGrid,
     device: &B::Device,
+    test_mirror: bool,
 ) -> Result<Prediction, TrainError> {
     let t0 = Instant::now();
-    let mut batch = collate::<B>(std::slice::from_ref(sample), grid, device)?;
-    batch.target = None;
-    batch.points = None;
-    let out = model.forward(&batch)?;
-    let classes = out
-        .dense_prediction(1, grid.dims)
-        .into_iter()
-        .next()
+    let forward = |s: &Sample| -> Result<occ_model::ModelOutput<B>, TrainError> {
+        let mut batch = collate::<B>(std::slice::from_ref(s), grid, device)?;
+        batch.target = None;
+        batch.points = None;
+        Ok(model.forward(&batch)?)
+    };
+    let out = forward(sample)?;
+    if !test_mirror {
+        let classes = out
+            .dense_prediction(1, grid.dims)
+            .into_iter()
+            .next()
+            .unwrap_or_default();
+        return Ok(Prediction {
+            classes,
+            seconds: t0.elapsed().as_secs_f64(),
+            stats: out.stats,
+        });
+    }
+    let mut mirrored = Sample {
+        target: None,
+        points: None,
+        ..sample.clone()
+    };
+    mirror_sample_y(&mut mirrored, &grid)?;
+    let out_m = forward(&mirrored)?;
+    let probs = out
+        .dense_probabilities(1, grid.dims)
+        .pop()
         .unwrap_or_default();
+    let probs_m = out_m
+        .dense_probabilities(1, grid.dims)
+        .pop()
+        .unwrap_or_default();
+    let classes = mean_of_mirrored_argmax(&probs, &probs_m, grid.dims).ok_or_else(|| {
+        TrainError::Data(format!(
+            "frame {}/{}: test-time mirror: {} and {} class probabilities for the grid {:?}",
+            sample.frame.sequence,
+            sample.frame.frame,
+            probs.len(),
+            probs_m.len(),
+            grid.dims
+        ))
+    })?;
+    let mut stats = out.stats;
+    stats.extend(
+        out_m
+            .stats
+            .into_iter()
+            .map(|(k, v)| (format!("{k} (mirrored)"), v)),
+    );
     Ok(Prediction {
         classes,
         seconds: t0.elapsed().as_secs_f64(),
-        stats: out.stats,
+        stats,
     })
+}
+
+/// Class of every voxel of `dims` from the mean of `probs` (`[X][Y][Z][C]`) and `probs_mirrored`,
+/// the probabilities of the mirrored scene (voxel column `y` of it is column `Y - 1 - y` of the
+/// scene). `None` if the two are not `X·Y·Z·C` values for the same `C`.
+pub fn mean_of_mirrored_argmax(
+    probs: &[f32],
+    probs_mirrored: &[f32],
+    dims: [usize; 3],
+) -> Option<Vec<u8>> {
+    let [nx, ny, nz] = dims;
+    let n = nx * ny * nz;
+    if n == 0 || probs.len() != probs_mirrored.len() || !probs.len().is_multiple_of(n) {
+        return None;
+    }
+    let c = probs.len() / n;
+    if c == 0 || c > 256 {
+        return None;
+    }
+    let mut classes = vec![0u8; n];
+    for x in 0..nx {
+        for y in 0..ny {
+            for z in 0..nz {
+                let v = (x * ny + y) * nz + z;
+                let vm = (x * ny + (ny - 1 - y)) * nz + z;
+                let (a, b) = (
+                    &probs[v * c..(v + 1) * c],
+                    &probs_mirrored[vm * c..(vm + 1) * c],
+                );
+                let mut best = 0;
+                let mut best_p = f32::NEG_INFINITY;
+                for k in 0..c {
+                    let p = a[k] + b[k];
+                    if p > best_p {
+                        best_p = p;
+                        best = k;
+                    }
+                }
+                classes[v] = best as u8;
+            }
+        }
+    }
+    Some(classes)
 }
 
 /// Predicts every frame of `ds` and writes each below `out_root` in the dataset's layout
 /// ([`Dataset::write_prediction`]: SemanticKITTI `sequences/XX/predictions/NNNNNN.label`, Occ3D
 /// `<scene>/<token>/labels.npz`, nuScenes-Occupancy `scene_<token>/occupancy/<lidar token>.npy`;
-/// atomically). `on_frame(done, total, &frame, &prediction)` reports progress. Returns the files
+/// atomically), with test-time mirror averaging when `test_mirror` ([`predict_sample`]).
+/// `on_frame(done, total, &frame, &prediction)` reports progress. Returns the files
 /// written with their forward times.
 pub fn predict_dataset<B: SparseConvBackend>(
     model: &OccNet<B>,
     ds: &Dataset,
     out_root: &Path,
     device: &B::Device,
+    test_mirror: bool,
     on_frame: &mut dyn FnMut(usize, usize, &FrameRef, &Prediction),
 ) -> Result<Vec<(PathBuf, f64)>, TrainError> {
     let mut written = Vec::with_capacity(ds.len());
     for i in 0..ds.len() {
         let sample = ds.load::<rand_chacha::ChaCha8Rng>(i, None)?;
-        let pred = predict_sample(model, &sample, ds.grid(), device)?;
+        let pred = predict_sample(model, &sample, ds.grid(), device, test_mirror)?;
         let path = ds.write_prediction(out_root, i, &pred.classes)?;
         on_frame(i + 1, ds.len(), &sample.frame, &pred);
         written.push((path, pred.seconds));
@@ -113,4 +208,23 @@ pub fn load_single_image(
         target: None,
         points: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mirrored_probabilities_are_mirrored_back_before_the_mean() {
+        // Grid 1 x 3 x 1, two classes. Column y of the mirrored scene is column 2 - y of the scene.
+        let probs = [0.9, 0.1, 0.4, 0.6, 0.5, 0.5];
+        let probs_m = [0.2, 0.8, 0.9, 0.1, 0.0, 1.0];
+        let c = mean_of_mirrored_argmax(&probs, &probs_m, [1, 3, 1]).unwrap();
+        // y = 0 pairs with mirrored y = 2: (0.9 + 0.0, 0.1 + 1.0) -> class 1;
+        // y = 1 with mirrored y = 1: (0.4 + 0.9, 0.6 + 0.1) -> class 0;
+        // y = 2 with mirrored y = 0: (0.5 + 0.2, 0.5 + 0.8) -> class 1.
+        assert_eq!(c, vec![1, 0, 1]);
+        assert!(mean_of_mirrored_argmax(&probs, &probs_m[..4], [1, 3, 1]).is_none());
+        assert!(mean_of_mirrored_argmax(&probs, &probs_m, [1, 4, 1]).is_none());
+    }
 }
