@@ -56,10 +56,10 @@ pub struct InferArgs {
     #[arg(long, default_value_t = 2)]
     pub render: usize,
     /// Test-time mirror augmentation: average each frame's class probabilities with those of its
-    /// mirror image (twice the forward time). On by default when the run's config sets
-    /// `data.test_mirror`.
-    #[arg(long)]
-    pub test_mirror: bool,
+    /// mirror image (twice the forward time). `--test-mirror` or `--test-mirror true` turns it on,
+    /// `--test-mirror false` off; default: the run config's `data.test_mirror`.
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub test_mirror: Option<bool>,
 }
 
 /// Loads a model and its configuration from a run folder (or its checkpoint/ folder).
@@ -139,7 +139,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let device = backend::device();
     let map = LearningMap::semantic_kitti();
-    let test_mirror = args.test_mirror || cfg.data.test_mirror;
+    let test_mirror = args.test_mirror.unwrap_or(cfg.data.test_mirror);
     let mut summary = serde_json::json!({
         "model": cfg.model.kind.name(),
         "device": backend::describe(),

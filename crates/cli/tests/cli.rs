@@ -170,6 +170,24 @@ fn train_resume_infer_eval_and_bad_input() {
         serde_json::json!(true),
         "{summary_m}"
     );
+    ok(&[
+        "infer",
+        "--checkpoint",
+        p(&run_dir),
+        "--data",
+        p(&data),
+        "--sequences",
+        "08",
+        "--out",
+        p(&pred_m),
+        "--render",
+        "0",
+        "--test-mirror",
+        "false",
+    ]);
+    let summary_m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(pred_m.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary_m["test_mirror"], serde_json::json!(false));
     let json = root.join("eval.json");
     ok(&[
         "eval",
