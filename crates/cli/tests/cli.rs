@@ -79,6 +79,23 @@ fn p(x: &Path) -> &str {
     x.to_str().unwrap()
 }
 
+/// `sparseocc infer --checkpoint RUN --data DATA --sequences 08 --out OUT EXTRA...`.
+fn infer_08(run: &Path, data: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec![
+        "infer",
+        "--checkpoint",
+        p(run),
+        "--data",
+        p(data),
+        "--sequences",
+        "08",
+        "--out",
+        p(out),
+    ];
+    args.extend_from_slice(extra);
+    ok(&args)
+}
+
 #[test]
 fn train_resume_infer_eval_and_bad_input() {
     let root = tmp("e2e");
@@ -128,66 +145,29 @@ fn train_resume_infer_eval_and_bad_input() {
 
     // Infer on the held-out sequence; every frame gets a submission file; eval scores it.
     let pred = root.join("pred");
-    ok(&[
-        "infer",
-        "--checkpoint",
-        p(&run_dir),
-        "--data",
-        p(&data),
-        "--sequences",
-        "08",
-        "--out",
-        p(&pred),
-    ]);
+    infer_08(&run_dir, &data, &pred, &[]);
     let label = pred.join("sequences/08/predictions/000000.label");
     assert_eq!(std::fs::metadata(&label).unwrap().len(), 128 * 128 * 16 * 2);
     assert!(pred.join("renders/08_000000.png").exists());
-    // The same with test-time mirror averaging.
-    let pred_m = root.join("pred_mirror");
-    ok(&[
-        "infer",
-        "--checkpoint",
-        p(&run_dir),
-        "--data",
-        p(&data),
-        "--sequences",
-        "08",
-        "--out",
-        p(&pred_m),
-        "--render",
-        "0",
-        "--test-mirror",
-    ]);
-    let label_m = pred_m.join("sequences/08/predictions/000000.label");
-    assert_eq!(
-        std::fs::metadata(&label_m).unwrap().len(),
-        128 * 128 * 16 * 2
-    );
-    let summary_m: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(pred_m.join("summary.json")).unwrap()).unwrap();
-    assert_eq!(
-        summary_m["test_mirror"],
-        serde_json::json!(true),
-        "{summary_m}"
-    );
-    ok(&[
-        "infer",
-        "--checkpoint",
-        p(&run_dir),
-        "--data",
-        p(&data),
-        "--sequences",
-        "08",
-        "--out",
-        p(&pred_m),
-        "--render",
-        "0",
-        "--test-mirror",
-        "false",
-    ]);
-    let summary_m: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(pred_m.join("summary.json")).unwrap()).unwrap();
-    assert_eq!(summary_m["test_mirror"], serde_json::json!(false));
+    // The same with test-time mirror averaging, switched on and off on the command line.
+    for flag in [&["--test-mirror"][..], &["--test-mirror", "false"][..]] {
+        let pred_m = root.join("pred_mirror");
+        infer_08(
+            &run_dir,
+            &data,
+            &pred_m,
+            &[&["--render", "0"][..], flag].concat(),
+        );
+        let label_m = pred_m.join("sequences/08/predictions/000000.label");
+        assert_eq!(
+            std::fs::metadata(&label_m).unwrap().len(),
+            128 * 128 * 16 * 2
+        );
+        let summary_m: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(pred_m.join("summary.json")).unwrap()).unwrap();
+        let on = flag.len() == 1;
+        assert_eq!(summary_m["test_mirror"], serde_json::json!(on), "{flag:?}");
+    }
     let json = root.join("eval.json");
     ok(&[
         "eval",

@@ -51,27 +51,10 @@ impl<B: Backend> ModelOutput<B> {
         if probs.len() != self.coords.len() * c {
             return out;
         }
-        let u = self.upsample.max(1);
         for (site, p) in self.coords.iter().zip(probs.chunks(c)) {
-            let b = site[0] as usize;
-            if b >= batch_size {
-                continue;
-            }
-            for dx in 0..u {
-                for dy in 0..u {
-                    for dz in 0..u {
-                        let (x, y, z) = (
-                            site[1] as usize * u + dx,
-                            site[2] as usize * u + dy,
-                            site[3] as usize * u + dz,
-                        );
-                        if x < fx && y < fy && z < fz {
-                            let i = ((x * fy + y) * fz + z) * c;
-                            out[b][i..i + c].copy_from_slice(p);
-                        }
-                    }
-                }
-            }
+            self.for_each_child(site, batch_size, full_dims, |b, v| {
+                out[b][v * c..(v + 1) * c].copy_from_slice(p)
+            });
         }
         out
     }
@@ -92,28 +75,42 @@ impl<B: Backend> ModelOutput<B> {
             .convert::<i64>()
             .to_vec::<i64>()
             .unwrap_or_default();
+        for (site, &cls) in self.coords.iter().zip(&am) {
+            self.for_each_child(site, batch_size, full_dims, |b, v| out[b][v] = cls as u8);
+        }
+        out
+    }
+
+    /// Calls `f(b, v)` for the flat full-resolution index `v` (`[X][Y][Z]`) of every child voxel of
+    /// output `site` (its `upsample^3` block, clipped to `full_dims`); nothing for items
+    /// `b >= batch_size`.
+    fn for_each_child(
+        &self,
+        site: &[i32; 4],
+        batch_size: usize,
+        full_dims: [usize; 3],
+        mut f: impl FnMut(usize, usize),
+    ) {
+        let [fx, fy, fz] = full_dims;
         let u = self.upsample.max(1);
-        for (c, &cls) in self.coords.iter().zip(&am) {
-            let b = c[0] as usize;
-            if b >= batch_size {
-                continue;
-            }
-            for dx in 0..u {
-                for dy in 0..u {
-                    for dz in 0..u {
-                        let (x, y, z) = (
-                            c[1] as usize * u + dx,
-                            c[2] as usize * u + dy,
-                            c[3] as usize * u + dz,
-                        );
-                        if x < fx && y < fy && z < fz {
-                            out[b][(x * fy + y) * fz + z] = cls as u8;
-                        }
+        let b = site[0] as usize;
+        if site.iter().any(|&v| v < 0) || b >= batch_size {
+            return;
+        }
+        for dx in 0..u {
+            for dy in 0..u {
+                for dz in 0..u {
+                    let (x, y, z) = (
+                        site[1] as usize * u + dx,
+                        site[2] as usize * u + dy,
+                        site[3] as usize * u + dz,
+                    );
+                    if x < fx && y < fy && z < fz {
+                        f(b, (x * fy + y) * fz + z);
                     }
                 }
             }
         }
-        out
     }
 }
 
