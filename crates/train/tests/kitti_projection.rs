@@ -163,3 +163,46 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
         }
     }
 }
+
+/// `data.train_unobserved`: by default the voxels of the `.invalid` mask are ignored (255); with the
+/// option the training targets keep their complete labels (the synthetic generator labels solid
+/// vehicle and building interiors, which no ray observes), and nothing else changes.
+#[test]
+fn unobserved_voxels_are_ignored_unless_training_on_complete_labels() {
+    let t = TempDir::new("unobserved");
+    let cfg_s = SynthConfig::new(Preset::KittiSmall, 3, vec![("00".into(), 1)]);
+    generate(&t.0, &cfg_s, &mut |_, _| {}).unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synthetic_tiny.toml"),
+    )
+    .unwrap();
+    let cfg = RunConfig::from_toml(&text, "synthetic_tiny.toml").unwrap();
+    assert!(!cfg.data.train_unobserved, "off unless a config asks");
+    let mut ds = Dataset::open(&t.0, &cfg.data, &["00".into()], &[]).unwrap();
+    let grid = ds.grid();
+    let n = grid.num_voxels();
+    let frame = t.0.join("sequences/00/voxels/000000");
+    let invalid =
+        occ_data::formats::semantic_kitti::read_packed_bits(&frame.with_extension("invalid"), n)
+            .unwrap();
+    let complete = occ_data::labels::LearningMap::semantic_kitti().remap(
+        &occ_data::formats::semantic_kitti::read_label_raw(&frame.with_extension("label"), n)
+            .unwrap(),
+    );
+    let masked = ds.load::<ChaCha8Rng>(0, None).unwrap().target.unwrap();
+    ds.set_keep_unobserved(true).unwrap();
+    let kept = ds.load::<ChaCha8Rng>(0, None).unwrap().target.unwrap();
+    assert_eq!(kept, complete);
+    let (mut unobserved, mut occupied_unobserved) = (0, 0);
+    for i in 0..n {
+        if invalid[i] == 1 {
+            unobserved += 1;
+            assert_eq!(masked[i], 255, "voxel {i}: unobserved but not ignored");
+            occupied_unobserved += usize::from(complete[i] != 0);
+        } else {
+            assert_eq!(masked[i], complete[i], "voxel {i}: observed label changed");
+        }
+    }
+    eprintln!("{unobserved} unobserved voxels, {occupied_unobserved} of them occupied");
+    assert!(unobserved > n / 10 && occupied_unobserved > 1000);
+}
