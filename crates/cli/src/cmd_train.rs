@@ -120,7 +120,6 @@ pub fn run_with(
     // semantic targets of SparseOcc++'s `sem2d_aux` need the LiDAR scans.
     let pp = cfg.model.pp_config();
     ds.set_load_points(cfg.model.kind != ModelKind::SparseOccPP || pp.depth_gate || pp.sem2d_aux);
-    ds.set_keep_unobserved(cfg.data.train_unobserved)?;
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",

@@ -65,34 +65,11 @@ pub struct DcaConfig {
     /// pixels across) want less, or the initial points miss the object the voxel projects onto.
     #[config(default = 1.0)]
     pub offset_init_scale: f64,
-    /// Not in the paper: with a per-hit gate ([`DeformableCrossAttention::forward_gated`], the depth
-    /// gate of [`crate::depth_gate`]), also add the query's mean gate over its views times a learned
-    /// vector `e_g` before the first norm: `x = LN(f + W_o·DCA + ḡ·e_g)`. The gate alone only scales
-    /// the attention output, which the LayerNorm largely normalises away (entirely for voxels that
-    /// start from zero features, like the propagated ones); this keeps "the depth map puts the
-    /// visible surface at this voxel" as a feature.
-    #[config(default = false)]
-    pub gate_feature: bool,
-    /// Not in the paper: how many of the `N_s` points of every head and level take as reference the
-    /// projection of the voxel's column footprint (its centre moved down to the grid's floor,
-    /// [`ViewHits::uv_foot`]) instead of the voxel centre: BEVFormer's pillar of reference heights,
-    /// reduced to the floor. A voxel in front of an object and a voxel of the object project onto the
-    /// same pixel; their footprints do not (road below the empty voxel, the object's base below the
-    /// occupied one), which is the monocular depth cue of objects standing on the ground. The last
-    /// `column_points` points of each head and level are the column points. 0 = the paper's DCA.
-    #[config(default = 0)]
-    pub column_points: usize,
 }
 
 impl DcaConfig {
     /// Checks the sizes.
     pub fn validate(&self) -> Result<(), ModelError> {
-        if self.column_points > self.num_points {
-            return Err(ModelError::Config(format!(
-                "DCA: column_points {} exceeds num_points {}",
-                self.column_points, self.num_points
-            )));
-        }
         if self.embed_dim == 0
             || self.num_heads == 0
             || !self.embed_dim.is_multiple_of(self.num_heads)
@@ -156,15 +133,11 @@ impl DcaConfig {
             ffn1: LinearConfig::new(d, hidden).init(device),
             ffn2: LinearConfig::new(hidden, d).init(device),
             norm2: LayerNormConfig::new(d).init(device),
-            gate_embed: self
-                .gate_feature
-                .then(|| Initializer::Zeros.init([1, d], device)),
             embed_dim: d,
             feat_channels: self.feat_channels,
             num_heads: m,
             num_levels: l,
             num_points: p,
-            column_points: self.column_points,
         }
     }
 }
@@ -188,14 +161,11 @@ pub struct DeformableCrossAttention<B: Backend> {
     pub ffn2: Linear<B>,
     /// Post-FFN norm.
     pub norm2: LayerNorm<B>,
-    /// `e_g [1, D]` of [`DcaConfig::gate_feature`] (present only with it).
-    pub gate_embed: Option<Param<Tensor<B, 2>>>,
     embed_dim: usize,
     feat_channels: usize,
     num_heads: usize,
     num_levels: usize,
     num_points: usize,
-    column_points: usize,
 }
 
 /// Which views see which query: one entry per (query, view) hit, sorted by image then query.
@@ -215,10 +185,6 @@ pub struct ViewHits {
     pub uv: Vec<[f64; 2]>,
     /// Depth of the voxel centre along the view's optical axis, metres.
     pub depth_m: Vec<f64>,
-    /// Reference point of the column points ([`DcaConfig::column_points`]): the projection of the
-    /// voxel centre moved down to the grid's floor (`z = origin_z`), network-input pixels; the
-    /// centre's own `uv` when that point is behind the camera.
-    pub uv_foot: Vec<[f64; 2]>,
     /// Number of views that see each query.
     pub views_per_query: Vec<u32>,
     /// Largest number of hits of one image.
@@ -233,10 +199,6 @@ impl ViewHits {
     /// True when no view sees any query.
     pub fn is_empty(&self) -> bool {
         self.query.is_empty()
-    }
-    /// Column reference point of hit `hi` (its `uv` when `uv_foot` was not filled in).
-    pub fn foot(&self, hi: usize) -> [f64; 2] {
-        self.uv_foot.get(hi).copied().unwrap_or(self.uv[hi])
     }
 }
 
@@ -258,9 +220,7 @@ pub fn project_queries(
     }
     let (h, w) = (image_hw.0 as f64, image_hw.1 as f64);
     let num_images = cameras.len() * num_views;
-    // Per image: (query, centre uv, depth, footprint uv).
-    type Hit = (u32, [f64; 2], f64, [f64; 2]);
-    let mut per_image: Vec<Vec<Hit>> = vec![Vec::new(); num_images];
+    let mut per_image: Vec<Vec<(u32, [f64; 2], f64)>> = vec![Vec::new(); num_images];
     let mut views_per_query = vec![0u32; coords.len()];
     for (q, c) in coords.iter().enumerate() {
         let b = usize::try_from(c[0])
@@ -286,13 +246,10 @@ pub fn project_queries(
                 })?;
         }
         let centre = grid.voxel_center_m(ijk);
-        let foot = [centre[0], centre[1], grid.origin_m[2]];
         for (v, cam) in cameras[b].iter().enumerate() {
             if let Some([u, vv, d]) = project_with(&cam.img_from_lidar, centre) {
                 if u >= 0.0 && vv >= 0.0 && u < w && vv < h {
-                    let uv_foot = project_with(&cam.img_from_lidar, foot)
-                        .map_or([u, vv], |[fu, fv, _]| [fu, fv]);
-                    per_image[b * num_views + v].push((q as u32, [u, vv], d, uv_foot));
+                    per_image[b * num_views + v].push((q as u32, [u, vv], d));
                     views_per_query[q] += 1;
                 }
             }
@@ -307,13 +264,11 @@ pub fn project_queries(
         slot: Vec::with_capacity(total),
         uv: Vec::with_capacity(total),
         depth_m: Vec::with_capacity(total),
-        uv_foot: Vec::with_capacity(total),
         views_per_query,
         max_per_image: per_image.iter().map(Vec::len).max().unwrap_or(0),
     };
     for (n, list) in per_image.iter().enumerate() {
-        for (s, &(q, uv, d, uv_foot)) in list.iter().enumerate() {
-            hits.uv_foot.push(uv_foot);
+        for (s, &(q, uv, d)) in list.iter().enumerate() {
             hits.query.push(q);
             hits.image.push(n as u32);
             hits.slot.push(s as u32);
@@ -541,7 +496,6 @@ impl<B: Backend> DeformableCrossAttention<B> {
             strides,
             self.num_heads,
             self.num_points,
-            self.column_points,
             self.embed_dim,
         )
     }
@@ -607,15 +561,12 @@ impl<B: Backend> DeformableCrossAttention<B> {
             // Reference points, normalised for align_corners = false.
             let sx = 2.0 / (stride as f64 * fw as f64);
             let sy = 2.0 / (stride as f64 * fh as f64);
-            let col0 = p - self.column_points;
-            let mut refs: Vec<f64> = Vec::with_capacity(nh * p * 2);
-            for (hi, &centre) in hits.uv.iter().enumerate() {
-                for j in 0..p {
-                    let [u, v] = if j >= col0 { hits.foot(hi) } else { centre };
-                    refs.extend([(u + 0.5) * sx - 1.0, (v + 0.5) * sy - 1.0]);
-                }
-            }
-            let refs = Tensor::<B, 4>::from_data(TensorData::new(refs, [nh, 1, p, 2]), &device);
+            let refs: Vec<f64> = hits
+                .uv
+                .iter()
+                .flat_map(|&[u, v]| [(u + 0.5) * sx - 1.0, (v + 0.5) * sy - 1.0])
+                .collect();
+            let refs = Tensor::<B, 4>::from_data(TensorData::new(refs, [nh, 1, 1, 2]), &device);
             let scale = Tensor::<B, 4>::from_data(
                 TensorData::new(vec![2.0 / fw as f64, 2.0 / fh as f64], [1, 1, 1, 2]),
                 &device,
@@ -660,38 +611,6 @@ impl<B: Backend> DeformableCrossAttention<B> {
         ) * inv)
     }
 
-    /// Mean of the per-hit `gate [nh]` over each query's views, `[N, 1]` (0 for a query no view sees).
-    fn mean_gate(&self, gate: Tensor<B, 1>, hits: &ViewHits) -> Result<Tensor<B, 2>, ModelError> {
-        let nh = hits.len();
-        if gate.dims()[0] != nh {
-            return Err(ModelError::Input(format!(
-                "DCA: {} gate values for {nh} hits",
-                gate.dims()[0]
-            )));
-        }
-        let device = gate.device();
-        let n = hits.num_queries;
-        let inv: Vec<f64> = hits
-            .views_per_query
-            .iter()
-            .map(|&c| if c == 0 { 0.0 } else { 1.0 / c as f64 })
-            .collect();
-        let inv = Tensor::<B, 2>::from_data(
-            TensorData::new(inv, [n, 1]).convert::<B::FloatElem>(),
-            &device,
-        );
-        if nh == 0 {
-            return Ok(inv.zeros_like());
-        }
-        let qidx = int_tensor::<B>(&hits.query, &device);
-        Ok(Tensor::<B, 2>::zeros([n, 1], &device).select_assign(
-            0,
-            qidx,
-            gate.reshape([nh, 1]),
-            IndexingUpdateOp::Add,
-        ) * inv)
-    }
-
     /// The full block: `x = LN(feats + W_o·DCA(feats + pos))`, `x = LN(x + FFN(x))`.
     ///
     /// # Shapes
@@ -717,17 +636,9 @@ impl<B: Backend> DeformableCrossAttention<B> {
         strides: &[usize],
         gate: Option<Tensor<B, 1>>,
     ) -> Result<Tensor<B, 2>, ModelError> {
-        let gate_term = match (&self.gate_embed, &gate) {
-            (Some(e), Some(g)) => Some(self.mean_gate(g.clone(), hits)?.matmul(e.val())),
-            _ => None,
-        };
         let attn = self.aggregate_gated(feats.clone() + pos, hits, images, strides, gate)?;
         crate::profile::trace_mark("dca sampling", &attn);
-        let mut x = feats + self.output_proj.forward(attn);
-        if let Some(t) = gate_term {
-            x = x + t;
-        }
-        let x = self.norm1.forward(x);
+        let x = self.norm1.forward(feats + self.output_proj.forward(attn));
         let y = self.ffn2.forward(relu(self.ffn1.forward(x.clone())));
         Ok(self.norm2.forward(x + y))
     }
@@ -791,87 +702,6 @@ mod tests {
             .with_offset_init_scale(-1.0)
             .validate()
             .is_err());
-    }
-
-    /// `gate_feature`: the block equals the plain gated block with `ḡ·e_g` moved into the features
-    /// (and out of the position encoding, so the sampling query is unchanged), `ḡ` the mean gate over
-    /// the query's views (0 for a query no view sees); without a gate the term is absent.
-    #[test]
-    fn gate_feature_adds_the_mean_gate_times_its_vector() {
-        use burn::tensor::Distribution;
-        let device = Default::default();
-        let (d, c) = (8, 4);
-        let cfg = DcaConfig::new(d, c).with_num_heads(2).with_num_points(2);
-        // Parameters are initialised lazily (a clone of a fresh module draws its own): copy them
-        // through a record so that both blocks share them.
-        let fresh = cfg.clone().with_gate_feature(true).init::<B64>(&device);
-        let mut dca = cfg
-            .clone()
-            .with_gate_feature(true)
-            .init::<B64>(&device)
-            .load_record(fresh.clone().into_record());
-        let record = dca.clone().into_record();
-        let e = Tensor::<B64, 2>::random([1, d], Distribution::Normal(0.0, 1.0), &device);
-        dca.gate_embed = Some(Param::from_tensor(e.clone()));
-        let mut plain = cfg
-            .with_gate_feature(true)
-            .init::<B64>(&device)
-            .load_record(record);
-        plain.gate_embed = None;
-        // Queries 0 and 1 seen by both images, query 2 by the first only, query 3 by none.
-        let hits = ViewHits {
-            num_queries: 4,
-            num_images: 2,
-            query: vec![0, 1, 2, 0, 1],
-            image: vec![0, 0, 0, 1, 1],
-            slot: vec![0, 1, 2, 0, 1],
-            uv: vec![[3.2, 2.1], [5.5, 4.0], [1.0, 6.5], [7.1, 3.3], [2.2, 2.2]],
-            depth_m: vec![5.0; 5],
-            uv_foot: Vec::new(),
-            views_per_query: vec![2, 2, 1, 0],
-            max_per_image: 3,
-        };
-        let gate = [0.2, 1.0, 0.6, 0.8, 0.0];
-        let gbar = [0.5, 0.5, 0.6, 0.0];
-        let images = vec![Tensor::<B64, 4>::random(
-            [2, c, 8, 10],
-            Distribution::Default,
-            &device,
-        )];
-        let feats = Tensor::<B64, 2>::random([4, d], Distribution::Normal(0.0, 1.0), &device);
-        let pos = Tensor::<B64, 2>::random([4, d], Distribution::Normal(0.0, 1.0), &device);
-        let g = Tensor::<B64, 1>::from_data(TensorData::new(gate.to_vec(), [5]), &device);
-        let shift =
-            Tensor::<B64, 2>::from_data(TensorData::new(gbar.to_vec(), [4, 1]), &device).matmul(e);
-        let got = dca
-            .forward_gated(
-                feats.clone(),
-                pos.clone(),
-                &hits,
-                &images,
-                &[4],
-                Some(g.clone()),
-            )
-            .unwrap();
-        let want = plain
-            .forward_gated(
-                feats.clone() + shift.clone(),
-                pos.clone() - shift,
-                &hits,
-                &images,
-                &[4],
-                Some(g),
-            )
-            .unwrap();
-        got.to_data()
-            .assert_approx_eq::<f64>(&want.to_data(), Default::default());
-        // Without a gate the vector is unused.
-        let a = dca
-            .forward(feats.clone(), pos.clone(), &hits, &images, &[4])
-            .unwrap();
-        let b = plain.forward(feats, pos, &hits, &images, &[4]).unwrap();
-        a.to_data()
-            .assert_approx_eq::<f64>(&b.to_data(), Default::default());
     }
 
     fn npy(path: &std::path::Path) -> (Vec<usize>, Vec<f64>) {

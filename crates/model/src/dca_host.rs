@@ -57,10 +57,6 @@ pub(crate) struct SampleLayout {
     order: Vec<usize>,
     image: Vec<u32>,
     uv: Vec<[f64; 2]>,
-    /// Column reference points ([`crate::dca::DcaConfig::column_points`]) and the first point index
-    /// that uses them (`P` when there are none).
-    uv_foot: Vec<[f64; 2]>,
-    col0: usize,
     views: Vec<u32>,
 }
 
@@ -72,7 +68,6 @@ impl SampleLayout {
         strides: &[usize],
         m: usize,
         p: usize,
-        column_points: usize,
         d: usize,
     ) -> Self {
         let n = hits.num_queries;
@@ -107,8 +102,6 @@ impl SampleLayout {
             order,
             image: hits.image.clone(),
             uv: hits.uv.clone(),
-            uv_foot: (0..hits.len()).map(|hi| hits.foot(hi)).collect(),
-            col0: p - column_points.min(p),
             views: hits.views_per_query.clone(),
         }
     }
@@ -137,16 +130,13 @@ impl SampleLayout {
         for &hi in &self.order[self.start[q]..self.start[q + 1]] {
             let img = self.image[hi] as usize;
             let [u, v] = self.uv[hi];
-            let [fu, fv] = self.uv_foot[hi];
             for (lvl, g) in self.levels.iter().enumerate() {
                 let (h, w) = (g.h as i64, g.w as i64);
                 let s = g.stride as f64;
-                let centre = ((u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5);
-                let foot = ((fu + 0.5) / s - 0.5, (fv + 0.5) / s - 0.5);
+                let (bx, by) = ((u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5);
                 for head in 0..m {
                     for j in 0..p {
                         let k = ((q * m + head) * nl + lvl) * p + j;
-                        let (bx, by) = if j >= self.col0 { foot } else { centre };
                         let x = bx + off[2 * k].to_f64();
                         let y = by + off[2 * k + 1].to_f64();
                         let (x0, y0) = (x.floor(), y.floor());

@@ -239,7 +239,6 @@ mod tests {
             slot: (0..n as u32).collect(),
             uv,
             depth_m,
-            uv_foot: Vec::new(),
             views_per_query: vec![1; n],
             max_per_image: n,
         }

@@ -69,10 +69,6 @@ pub struct SparseOccPPConfig {
     /// pixels for point `j`); see [`DcaConfig::offset_init_scale`].
     #[config(default = 1.0)]
     pub dca_offset_init_scale: f64,
-    /// Not in the paper: DCA points per head and level referenced at the voxel's column footprint
-    /// on the grid floor instead of its centre ([`DcaConfig::column_points`]); 0 = the paper.
-    #[config(default = 0)]
-    pub dca_column_points: usize,
     /// Anchor generation (paper default coarse-to-fine).
     #[config(default = "AnchorMode::CoarseToFine")]
     pub anchor_mode: AnchorMode,
@@ -144,8 +140,6 @@ impl SparseOccPPConfig {
             .with_num_points(self.dca_points)
             .with_ffn_ratio(self.dca_ffn_ratio)
             .with_offset_init_scale(self.dca_offset_init_scale)
-            .with_gate_feature(self.depth_gate)
-            .with_column_points(self.dca_column_points)
     }
 
     /// The anchor generator's configuration.

@@ -55,14 +55,6 @@ pub struct DataConfig {
     /// each frame and its mirror image (`crate::infer::predict_sample`). Default off.
     #[serde(default)]
     pub test_mirror: bool,
-    /// Train on the complete labels, including the voxels the SemanticKITTI `.invalid` mask marks as
-    /// never observed (they are otherwise ignored, 255, as in MonoScene). Only for data whose labels
-    /// are the complete scene, like the synthetic generator's (solid vehicles and buildings, free
-    /// space behind them); real SemanticKITTI labels unobserved voxels as empty, so keep it off there.
-    /// Validation, `infer` and `eval` still ignore unobserved voxels (the official protocol).
-    /// SemanticKITTI layout only. Default off.
-    #[serde(default)]
-    pub train_unobserved: bool,
 }
 
 fn resize_lim() -> (f64, f64) {

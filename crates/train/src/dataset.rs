@@ -116,9 +116,6 @@ pub struct KittiDataset {
     pub load_points: bool,
     /// Training: probability of the lateral mirror ([`crate::mirror`]).
     pub mirror_prob: f64,
-    /// Keep the labels of voxels the `.invalid` mask marks as unobserved instead of ignoring them
-    /// (`data.train_unobserved`, for complete synthetic labels).
-    pub keep_unobserved: bool,
 }
 
 impl KittiDataset {
@@ -165,7 +162,6 @@ impl KittiDataset {
             map: LearningMap::semantic_kitti(),
             load_points: false,
             mirror_prob: 0.0,
-            keep_unobserved: false,
         })
     }
 
@@ -216,7 +212,7 @@ impl KittiDataset {
         let target = if label_p.exists() {
             let mut t = self.map.remap(&sk::read_label_raw(&label_p, n)?);
             let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
-            if !self.keep_unobserved && inv_p.exists() {
+            if inv_p.exists() {
                 let inv = sk::read_packed_bits(&inv_p, n)?;
                 for (t, &v) in t.iter_mut().zip(&inv) {
                     if v == 1 {
@@ -614,21 +610,6 @@ impl Dataset {
         match self {
             Dataset::Kitti(d) => d.grid(),
             Dataset::Surround(d) => d.grid,
-        }
-    }
-    /// Training on the complete labels (`data.train_unobserved`): keep the labels of voxels the
-    /// `.invalid` mask marks as unobserved. An error for the nuScenes layouts, whose masks are
-    /// part of their ground truth.
-    pub fn set_keep_unobserved(&mut self, on: bool) -> Result<(), TrainError> {
-        match self {
-            Dataset::Kitti(d) => {
-                d.keep_unobserved = on;
-                Ok(())
-            }
-            Dataset::Surround(_) if on => Err(TrainError::Config(
-                "data.train_unobserved applies to the SemanticKITTI layout only".into(),
-            )),
-            Dataset::Surround(_) => Ok(()),
         }
     }
     /// Whether frames carry LiDAR points (depth supervision).

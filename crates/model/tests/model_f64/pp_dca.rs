@@ -28,23 +28,14 @@ fn bilinear(map: &[f64], h: usize, w: usize, x: f64, y: f64) -> f64 {
     acc
 }
 
-/// The paper's DCA, and with the last point of every head and level referenced at the voxel's
-/// column footprint (`column_points = 1`: the centre moved down to the grid floor).
 #[test]
 fn dca_excludes_views_that_do_not_see_the_voxel() {
-    for column_points in [0, 1] {
-        dca_direct(column_points);
-    }
-}
-
-fn dca_direct(column_points: usize) {
     let device = Default::default();
     let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
     let mut dca = DcaConfig::new(d, FEAT_C)
         .with_num_levels(l)
         .with_num_heads(m)
         .with_num_points(p)
-        .with_column_points(column_points)
         .init::<B64>(&device);
     // Query-dependent offsets and weights (the init makes them constant).
     dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 11, &device) * 2.0);
@@ -76,7 +67,6 @@ fn dca_direct(column_points: usize) {
     let mut checked_zero_pad = false;
     for (q, c) in coords.iter().enumerate() {
         let centre = g.voxel_center_m([c[1] as usize, c[2] as usize, c[3] as usize]);
-        let foot = [centre[0], centre[1], g.origin_m[2]];
         let mut expected = vec![0.0; d];
         let mut seen = 0;
         for (v, cam) in cams[0].iter().enumerate() {
@@ -89,24 +79,13 @@ fn dca_direct(column_points: usize) {
                 continue;
             }
             seen += 1;
-            let tf = transform_point(&cam.img_from_lidar, foot);
-            assert!(
-                tf[2] > 1e-3,
-                "the test's footprints are in front of the camera"
-            );
-            let (fu, fv) = (tf[0] / tf[2], tf[1] / tf[2]);
             for head in 0..m {
                 for (lvl, (vals, h, w)) in values.iter().enumerate() {
                     let s = STRIDES[lvl] as f64;
                     for j in 0..p {
                         let base = (((q * m + head) * l + lvl) * p + j) * 2;
-                        let (ru, rv) = if j >= p - column_points {
-                            (fu, fv)
-                        } else {
-                            (u, vv)
-                        };
-                        let x = (ru + 0.5) / s - 0.5 + off[base];
-                        let y = (rv + 0.5) / s - 0.5 + off[base + 1];
+                        let x = (u + 0.5) / s - 0.5 + off[base];
+                        let y = (vv + 0.5) / s - 0.5 + off[base + 1];
                         if x < -1.0 || y < -1.0 || x > *w as f64 || y > *h as f64 {
                             checked_zero_pad = true;
                         }
@@ -156,14 +135,13 @@ fn dca_direct(column_points: usize) {
 /// same attention, in f64 and in f32, including samples that leave the feature maps.
 #[test]
 fn dca_host_loop_equals_tensor_ops() {
-    fn check<Bk: Backend>(tol: f64, column_points: usize) {
+    fn check<Bk: Backend>(tol: f64) {
         let device = Default::default();
         let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
         let mut dca = DcaConfig::new(d, FEAT_C)
             .with_num_levels(l)
             .with_num_heads(m)
             .with_num_points(p)
-            .with_column_points(column_points)
             .init::<Bk>(&device);
         dca.sampling_offsets.weight =
             Param::from_tensor(randn([d, m * l * p * 2], 21, &device) * 3.0);
@@ -221,10 +199,8 @@ fn dca_host_loop_equals_tensor_ops() {
             .sum();
         assert!(diff > 1e-3, "{diff}");
     }
-    for column_points in [0, 2] {
-        check::<B64>(1e-10, column_points);
-        check::<NB>(1e-4, column_points);
-    }
+    check::<B64>(1e-10);
+    check::<NB>(1e-4);
 }
 
 /// On `Autodiff<NdArray>` (CPU training) the sampling is one autodiff op with its own backward
@@ -235,12 +211,10 @@ fn dca_host_loop_equals_tensor_ops() {
 fn dca_host_autodiff_equals_tensor_ops_with_gradients() {
     let device = Default::default();
     let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
-    // One column point per head and level (`column_points`), so both reference points are covered.
     let mut dca = DcaConfig::new(d, FEAT_C)
         .with_num_levels(l)
         .with_num_heads(m)
         .with_num_points(p)
-        .with_column_points(1)
         .init::<AD>(&device);
     dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 31, &device) * 3.0);
     dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 32, &device));
