@@ -207,6 +207,58 @@ impl<B: AutodiffBackend> ModuleVisitor<B> for GradCheck<'_, B> {
     }
 }
 
+/// Replaces every float parameter by values drawn from a generator seeded with `seed`, so a
+/// model's initialisation does not depend on burn's process-wide RNG (which the tests of one
+/// binary share across threads). Constant vectors (norm scales and shifts, zero biases) are kept;
+/// other vectors get U(-0.1, 0.1), matrices and kernels N(0, 1/fan) with fan the smaller of the
+/// first and the last dimension's complement.
+pub struct SeededInit {
+    pub rng: ChaCha8Rng,
+}
+
+impl<B: Backend> burn::module::ModuleMapper<B> for SeededInit {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<B, D>>) -> Param<Tensor<B, D>> {
+        let rng = &mut self.rng;
+        param.map(|t| {
+            let dims = t.dims();
+            let device = t.device();
+            let require_grad = t.is_require_grad();
+            let old = t.into_data().convert::<f64>().to_vec::<f64>().unwrap();
+            let n = old.len();
+            let values: Vec<f64> = if D == 1 {
+                if old.iter().all(|&v| v == old[0]) {
+                    old
+                } else {
+                    (0..n).map(|_| rng.random_range(-0.1..0.1)).collect()
+                }
+            } else {
+                let fan = (n / dims[0]).min(n / dims[D - 1]).max(1) as f64;
+                let std = fan.sqrt().recip();
+                (0..n)
+                    .map(|_| {
+                        let u1: f64 = rng.random_range(1e-12..1.0);
+                        let u2: f64 = rng.random_range(0.0..1.0);
+                        std * (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+                    })
+                    .collect()
+            };
+            let t = Tensor::from_data(TensorData::new(values, dims), &device);
+            if require_grad {
+                t.require_grad()
+            } else {
+                t
+            }
+        })
+    }
+}
+
+/// `module` with every float parameter re-drawn from `seed` (see [`SeededInit`]).
+pub fn seeded_init<B: Backend, M: Module<B>>(module: M, seed: u64) -> M {
+    module.map(&mut SeededInit {
+        rng: ChaCha8Rng::seed_from_u64(seed),
+    })
+}
+
 /// Asserts that every float parameter of `module` has a finite gradient in `grads`; returns the count.
 pub fn assert_all_grads<B: AutodiffBackend, M: Module<B>>(
     module: &M,
