@@ -51,6 +51,12 @@ pub struct DataConfig {
     /// `crate::mirror`). Default 0 (off); applied only when `train.augment` is on.
     #[serde(default)]
     pub mirror_prob: f64,
+    /// Training augmentation: translate the whole sample in the ground plane by a whole number of
+    /// voxels drawn uniformly within `±(x, y)` (labels moved, cameras re-folded, image unchanged;
+    /// BEVDet's BEV augmentation, `crate::shift`). Default `(0, 0)` (off); applied only when
+    /// `train.augment` is on.
+    #[serde(default)]
+    pub shift_voxels: (usize, usize),
     /// Test-time mirror augmentation in validation and `infer`: average the class probabilities of
     /// each frame and its mirror image (`crate::infer::predict_sample`). Default off.
     #[serde(default)]

@@ -116,6 +116,8 @@ pub struct KittiDataset {
     pub load_points: bool,
     /// Training: probability of the lateral mirror ([`crate::mirror`]).
     pub mirror_prob: f64,
+    /// Training: largest translation in voxels along x and y ([`crate::shift`]).
+    pub shift_voxels: [usize; 2],
 }
 
 impl KittiDataset {
@@ -162,6 +164,7 @@ impl KittiDataset {
             map: LearningMap::semantic_kitti(),
             load_points: false,
             mirror_prob: 0.0,
+            shift_voxels: [0, 0],
         })
     }
 
@@ -272,6 +275,8 @@ pub struct SurroundDataset {
     pub load_points: bool,
     /// Training: probability of the lateral mirror ([`crate::mirror`]).
     pub mirror_prob: f64,
+    /// Training: largest translation in voxels along x and y ([`crate::shift`]).
+    pub shift_voxels: [usize; 2],
 }
 
 impl SurroundDataset {
@@ -375,6 +380,7 @@ impl SurroundDataset {
             pipeline,
             load_points: false,
             mirror_prob: 0.0,
+            shift_voxels: [0, 0],
         })
     }
 
@@ -565,6 +571,7 @@ impl Dataset {
             DatasetFormat::SemanticKitti => {
                 let mut d = KittiDataset::open(root, sequences, cfg.pipeline())?;
                 d.mirror_prob = cfg.mirror_prob;
+                d.shift_voxels = [cfg.shift_voxels.0, cfg.shift_voxels.1];
                 Dataset::Kitti(d)
             }
             f => {
@@ -578,6 +585,7 @@ impl Dataset {
                     cfg.nuscenes_version.as_deref(),
                 )?;
                 d.mirror_prob = cfg.mirror_prob;
+                d.shift_voxels = [cfg.shift_voxels.0, cfg.shift_voxels.1];
                 Dataset::Surround(d)
             }
         })
@@ -620,19 +628,33 @@ impl Dataset {
         }
     }
     /// Loads frame `i`; with `rng`, applies the training augmentation: the image augmentation per
-    /// camera, then the lateral mirror of the whole sample with probability `mirror_prob`.
+    /// camera, then the lateral mirror of the whole sample with probability `mirror_prob`, then a
+    /// translation by a whole number of voxels drawn uniformly within `±shift_voxels`.
     pub fn load<R: Rng + ?Sized>(
         &self,
         i: usize,
         mut rng: Option<&mut R>,
     ) -> Result<Sample, TrainError> {
-        let (mut s, p) = match self {
-            Dataset::Kitti(d) => (d.load(i, rng.as_deref_mut())?, d.mirror_prob),
-            Dataset::Surround(d) => (d.load(i, rng.as_deref_mut())?, d.mirror_prob),
+        let (mut s, p, shift) = match self {
+            Dataset::Kitti(d) => (
+                d.load(i, rng.as_deref_mut())?,
+                d.mirror_prob,
+                d.shift_voxels,
+            ),
+            Dataset::Surround(d) => (
+                d.load(i, rng.as_deref_mut())?,
+                d.mirror_prob,
+                d.shift_voxels,
+            ),
         };
-        if let Some(r) = rng.filter(|_| p > 0.0) {
-            if r.random::<f64>() < p {
+        if let Some(r) = rng {
+            if p > 0.0 && r.random::<f64>() < p {
                 crate::mirror::mirror_sample_y(&mut s, &self.grid())?;
+            }
+            if shift != [0, 0] {
+                let [mx, my] = shift.map(|m| m as i64);
+                let d = [r.random_range(-mx..=mx), r.random_range(-my..=my)];
+                crate::shift::shift_sample_xy(&mut s, &self.grid(), d)?;
             }
         }
         Ok(s)

@@ -11,6 +11,7 @@ pub mod grads;
 pub mod infer;
 pub mod mirror;
 pub mod schedule;
+pub mod shift;
 pub mod trainer;
 
 pub use config::{DataConfig, RunConfig};

@@ -119,6 +119,10 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
     let mut data_mirror = cfg.data.clone();
     data_mirror.mirror_prob = 1.0;
     let ds_mirror = Dataset::open(&t.0, &data_mirror, &["00".into()], &[]).unwrap();
+    // And translated by up to 6 voxels along x and y (`data.shift_voxels`, image unchanged).
+    let mut data_shift = data_mirror.clone();
+    data_shift.shift_voxels = (6, 6);
+    let ds_shift = Dataset::open(&t.0, &data_shift, &["00".into()], &[]).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     for i in 0..ds.len() {
         let plain = ds.load::<ChaCha8Rng>(i, None).unwrap();
@@ -159,6 +163,15 @@ fn ground_voxels_project_onto_pixels_of_their_class() {
             assert!(
                 n > 60 && a > 0.75,
                 "frame {i} augmented and mirrored: {n} faces, agreement {a:.3}"
+            );
+            let aug = ds_shift.load(i, Some(&mut rng)).unwrap();
+            let (n, a) = agreement(&aug, &grid, 0.0);
+            eprintln!(
+                "frame {i}: augmented, mirrored and shifted #{k}: {n} boundary faces, agreement {a:.3}"
+            );
+            assert!(
+                n > 60 && a > 0.75,
+                "frame {i} augmented, mirrored and shifted: {n} faces, agreement {a:.3}"
             );
         }
     }
