@@ -12,6 +12,8 @@ pub mod infer;
 pub mod mirror;
 pub mod schedule;
 pub mod shift;
+#[cfg(test)]
+mod test_support;
 pub mod trainer;
 
 pub use config::{DataConfig, RunConfig};

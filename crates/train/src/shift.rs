@@ -95,58 +95,16 @@ pub fn shift_sample_xy(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::FrameRef;
-    use occ_geometry::{project_with, CameraView, PinholeCamera};
-    use occ_model::CameraInput;
+    use crate::test_support::{self, front_camera_sample};
+    use occ_geometry::project_with;
 
-    /// A front camera looking along +x over a 20x16x4 grid of 0.5 m.
     fn setup() -> (Sample, VoxelGrid) {
-        let grid = VoxelGrid {
-            origin_m: [0.0, -4.0, -1.0],
-            voxel_size_m: 0.5,
-            dims: [20, 16, 4],
-        };
-        let (w, h) = (40usize, 12usize);
-        let camera = PinholeCamera {
-            fx: 20.0,
-            fy: 20.0,
-            cx: 17.3,
-            cy: 5.6,
-            width: w,
-            height: h,
-        };
-        let cam_from_lidar: Mat4 = [
-            [0.0, -1.0, 0.0, 0.3],
-            [0.0, 0.0, -1.0, 0.2],
-            [1.0, 0.0, 0.0, 0.0],
-            [0.0, 0.0, 0.0, 1.0],
-        ];
-        let view = CameraView::new(camera, cam_from_lidar);
-        let n = grid.dims.iter().product::<usize>();
-        let sample = Sample {
-            frame: FrameRef {
-                sequence: "00".into(),
-                frame: "000000".into(),
-            },
-            chw: (0..3 * w * h).map(|i| i as f32).collect(),
-            size: (w, h),
-            cameras: vec![CameraInput {
-                img_from_lidar: view.img_from_lidar(),
-                cam_from_lidar,
-            }],
-            target: Some((0..n).map(|i| (i % 251) as u8).collect()),
-            points: Some(vec![[5.0, 1.25, -0.5], [7.5, -2.0, 0.25]]),
-        };
+        let (sample, grid, _) = front_camera_sample();
         (sample, grid)
     }
 
     fn centre(grid: &VoxelGrid, [x, y, z]: [i64; 3]) -> [f64; 3] {
-        let s = grid.voxel_size_m;
-        [
-            grid.origin_m[0] + (x as f64 + 0.5) * s,
-            grid.origin_m[1] + (y as f64 + 0.5) * s,
-            grid.origin_m[2] + (z as f64 + 0.5) * s,
-        ]
+        test_support::centre(grid, [x as usize, y as usize, z as usize])
     }
 
     #[test]
