@@ -103,6 +103,30 @@ pub struct Sample {
     pub points: Option<Vec<[f32; 3]>>,
 }
 
+impl Sample {
+    /// Replaces the target (if any) by `f(target)`, for the whole-sample transforms (`crate::mirror`,
+    /// `crate::shift`); `f` returns `None` when the target does not match the grid `dims`, which is an
+    /// error naming the frame and the transform `what`.
+    pub fn map_target(
+        &mut self,
+        what: &str,
+        dims: [usize; 3],
+        f: impl FnOnce(&[u8]) -> Option<Vec<u8>>,
+    ) -> Result<(), TrainError> {
+        if let Some(t) = &mut self.target {
+            *t = f(t).ok_or_else(|| {
+                TrainError::Data(format!(
+                    "frame {}/{}: {what}: {} labels for the grid {dims:?}",
+                    self.frame.sequence,
+                    self.frame.frame,
+                    t.len(),
+                ))
+            })?;
+        }
+        Ok(())
+    }
+}
+
 /// A SemanticKITTI-layout dataset.
 #[derive(Clone, Debug)]
 pub struct KittiDataset {

@@ -53,17 +53,9 @@ pub fn mirror_sample_y(sample: &mut Sample, grid: &VoxelGrid) -> Result<(), Trai
     for row in sample.chw.chunks_mut(w) {
         row.reverse();
     }
-    if let Some(t) = &mut sample.target {
-        *t = flip_grid(t, grid.dims, [false, true, false]).ok_or_else(|| {
-            TrainError::Data(format!(
-                "frame {}/{}: mirror: {} labels for the grid {:?}",
-                sample.frame.sequence,
-                sample.frame.frame,
-                t.len(),
-                grid.dims
-            ))
-        })?;
-    }
+    sample.map_target("mirror", grid.dims, |t| {
+        flip_grid(t, grid.dims, [false, true, false])
+    })?;
     if let Some(points) = &mut sample.points {
         let two_c = m[1][3] as f32;
         for p in points.iter_mut() {

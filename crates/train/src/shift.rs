@@ -72,17 +72,9 @@ pub fn shift_sample_xy(
         cam.img_from_lidar = mat4_mul(&cam.img_from_lidar, &lidar_from_shifted);
         cam.cam_from_lidar = mat4_mul(&cam.cam_from_lidar, &lidar_from_shifted);
     }
-    if let Some(t) = &mut sample.target {
-        *t = shift_grid_xy(t, grid.dims, d, IGNORE).ok_or_else(|| {
-            TrainError::Data(format!(
-                "frame {}/{}: shift: {} labels for the grid {:?}",
-                sample.frame.sequence,
-                sample.frame.frame,
-                t.len(),
-                grid.dims
-            ))
-        })?;
-    }
+    sample.map_target("shift", grid.dims, |t| {
+        shift_grid_xy(t, grid.dims, d, IGNORE)
+    })?;
     if let Some(points) = &mut sample.points {
         for p in points.iter_mut() {
             p[0] += t_m[0] as f32;
