@@ -210,8 +210,8 @@ impl<B: AutodiffBackend> ModuleVisitor<B> for GradCheck<'_, B> {
 /// Replaces every float parameter by values drawn from a generator seeded with `seed`, so a
 /// model's initialisation does not depend on burn's process-wide RNG (which the tests of one
 /// binary share across threads). Constant vectors (norm scales and shifts, zero biases) are kept;
-/// other vectors get U(-0.1, 0.1), matrices and kernels N(0, 1/fan) with fan the smaller of the
-/// first and the last dimension's complement.
+/// other vectors get U(-0.1, 0.1), matrices and kernels N(0, 1/fan) with
+/// `fan = numel / max(first dim, last dim)` (a rough fan-in: the scale only keeps activations tame).
 pub struct SeededInit {
     pub rng: ChaCha8Rng,
 }
