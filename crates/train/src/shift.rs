@@ -16,20 +16,10 @@
 
 use crate::dataset::Sample;
 use crate::error::TrainError;
-use occ_geometry::{mat4_mul, Mat4, VoxelGrid};
+use occ_geometry::{mat4_identity, mat4_mul, VoxelGrid};
 
 /// Label of the voxels that enter the grid (no ground truth there).
 const IGNORE: u8 = 255;
-
-/// `T(t)`: the translation by `t_m` metres.
-fn translation(t_m: [f64; 3]) -> Mat4 {
-    [
-        [1.0, 0.0, 0.0, t_m[0]],
-        [0.0, 1.0, 0.0, t_m[1]],
-        [0.0, 0.0, 1.0, t_m[2]],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
-}
 
 /// `grid` (flat `[X][Y][Z]`) moved by `(dx, dy)` voxels; voxels that enter are `fill`. `None` when
 /// `grid.len()` does not match `dims`.
@@ -66,8 +56,11 @@ pub fn shift_sample_xy(
     d: [i64; 2],
 ) -> Result<(), TrainError> {
     let s = grid.voxel_size_m;
-    let t_m = [d[0] as f64 * s, d[1] as f64 * s, 0.0];
-    let lidar_from_shifted = translation([-t_m[0], -t_m[1], 0.0]);
+    let t_m = [d[0] as f64 * s, d[1] as f64 * s];
+    // T(−d·s): a point of the shifted grid frame in the original one.
+    let mut lidar_from_shifted = mat4_identity();
+    lidar_from_shifted[0][3] = -t_m[0];
+    lidar_from_shifted[1][3] = -t_m[1];
     for cam in &mut sample.cameras {
         cam.img_from_lidar = mat4_mul(&cam.img_from_lidar, &lidar_from_shifted);
         cam.cam_from_lidar = mat4_mul(&cam.cam_from_lidar, &lidar_from_shifted);
