@@ -14,7 +14,8 @@ pub struct SynthArgs {
     /// kitti (256x256x32, 1226x370), kitti-small (128x128x16, 613x185) or surround (Occ3D, 6 cameras).
     #[arg(long, default_value = "kitti-small")]
     pub preset: String,
-    /// Sequences and frame counts, e.g. `00:40,08:10`.
+    /// Sequences and frame counts, e.g. `00:40,08:10`; `A-B:N` is the range `A..=B` of `N` frames each
+    /// (`10-49:4`).
     #[arg(long, default_value = "00:20,08:5")]
     pub sequences: String,
     /// Random seed (same seed, same files).

@@ -258,19 +258,43 @@ impl SynthConfig {
     }
 }
 
-/// Parse a sequence list like `00:40,08:10` (name:frames, comma separated).
+/// Parse a sequence list like `00:40,08:10` (name:frames, comma separated). A part `A-B:N` with
+/// numeric `A <= B` stands for the sequences `A, A+1, …, B` of `N` frames each, written with the width
+/// of `A` (`00-02:4` = `00:4,01:4,02:4`; `8-10:1` = `8:1,9:1,10:1`).
 pub fn parse_sequences(spec: &str) -> Result<Vec<(String, usize)>, DataError> {
     let mut out = Vec::new();
     for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
         let Some((name, n)) = part.split_once(':') else {
             return Err(DataError::InvalidArgument(format!(
-                "sequence `{part}`: expected NAME:FRAMES, e.g. 00:40"
+                "sequence `{part}`: expected NAME:FRAMES or FIRST-LAST:FRAMES, e.g. 00:40 or 00-07:4"
             )));
         };
         let n: usize = n.trim().parse().map_err(|_| {
             DataError::InvalidArgument(format!("sequence `{part}`: `{n}` is not a frame count"))
         })?;
-        out.push((name.trim().to_string(), n));
+        let name = name.trim();
+        match name.split_once('-') {
+            Some((a, b)) => {
+                let bad = || {
+                    DataError::InvalidArgument(format!(
+                        "sequence range `{part}`: expected FIRST-LAST:FRAMES with numbers FIRST <= LAST, e.g. 00-07:4"
+                    ))
+                };
+                let numeric = |t: &str| !t.is_empty() && t.bytes().all(|c| c.is_ascii_digit());
+                let (a, b) = (a.trim(), b.trim());
+                if !numeric(a) || !numeric(b) {
+                    return Err(bad());
+                }
+                let first: u32 = a.parse().map_err(|_| bad())?;
+                let last: u32 = b.parse().map_err(|_| bad())?;
+                if first > last || last - first >= 10_000 {
+                    return Err(bad());
+                }
+                let width = a.len();
+                out.extend((first..=last).map(|i| (format!("{i:0width$}"), n)));
+            }
+            None => out.push((name.to_string(), n)),
+        }
     }
     if out.is_empty() {
         return Err(DataError::InvalidArgument(format!(
@@ -605,6 +629,21 @@ mod tests {
         assert!(parse_sequences("00").is_err());
         assert!(parse_sequences("00:x").is_err());
         assert!(parse_sequences("").is_err());
+        let r = parse_sequences("00-02:4, 10:1,8-10:2").unwrap();
+        let names: Vec<&str> = r.iter().map(|s| s.0.as_str()).collect();
+        assert_eq!(names, ["00", "01", "02", "10", "8", "9", "10"]);
+        assert_eq!(
+            r.iter().map(|s| s.1).collect::<Vec<_>>(),
+            [4, 4, 4, 1, 2, 2, 2]
+        );
+        assert_eq!(
+            parse_sequences("07-07:3").unwrap(),
+            vec![("07".to_string(), 3)]
+        );
+        for bad in ["03-01:4", "a-b:4", "00-:4", "-3:4", "00-0x:2", "0-99999:1"] {
+            let e = parse_sequences(bad).unwrap_err().to_string();
+            assert!(e.contains(bad.split(':').next().unwrap()), "{bad}: {e}");
+        }
         let mut c = SynthConfig::new(Preset::KittiSmall, 1, vec![("00".into(), 3)]);
         assert!(c.validate().is_ok());
         c.sequences.push(("00".into(), 2));
