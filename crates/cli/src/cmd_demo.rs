@@ -30,9 +30,10 @@ pub struct DemoArgs {
     /// Output folder (data/, run/, predictions/, prior_predictions/, renders/, summary.json).
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
-    /// Training sequences and frame counts (each sequence is its own procedurally generated street):
-    /// eight streets of four frames by default.
-    #[arg(long, default_value = "00:4,01:4,02:4,03:4,04:4,05:4,06:4,07:4")]
+    /// Training sequences and frame counts (each sequence is its own procedurally generated street;
+    /// `A-B:N` is the range `A..=B` of `N` frames each): 40 streets of four frames by default, 00-07 and
+    /// 10-41 (the held-out street is 08).
+    #[arg(long, default_value = "00-07:4,10-41:4")]
     pub train: String,
     /// Held-out validation sequence and frame count.
     #[arg(long, default_value = "08:6")]
