@@ -258,9 +258,10 @@ impl SynthConfig {
     }
 }
 
-/// Parse a sequence list like `00:40,08:10` (name:frames, comma separated). A part `A-B:N` with
-/// numeric `A <= B` stands for the sequences `A, A+1, …, B` of `N` frames each, written with the width
-/// of `A` (`00-02:4` = `00:4,01:4,02:4`; `8-10:1` = `8:1,9:1,10:1`).
+/// Parse a sequence list like `00:40,08:10` (name:frames, comma separated). A part `A-B:N` with `A`
+/// and `B` all digits stands for the sequences `A, A+1, …, B` of `N` frames each, written with the
+/// width of `A` (`00-02:4` = `00:4,01:4,02:4`; `8-10:1` = `8:1,9:1,10:1`); `A > B` is an error. Other
+/// names with a `-` (`scene-a:3`) are plain names.
 pub fn parse_sequences(spec: &str) -> Result<Vec<(String, usize)>, DataError> {
     let mut out = Vec::new();
     for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -273,18 +274,15 @@ pub fn parse_sequences(spec: &str) -> Result<Vec<(String, usize)>, DataError> {
             DataError::InvalidArgument(format!("sequence `{part}`: `{n}` is not a frame count"))
         })?;
         let name = name.trim();
+        let numeric = |t: &str| !t.is_empty() && t.bytes().all(|c| c.is_ascii_digit());
         match name.split_once('-') {
-            Some((a, b)) => {
+            // Both ends all digits: a range. Anything else with a `-` is a plain name (`scene-a`).
+            Some((a, b)) if numeric(a) && numeric(b) => {
                 let bad = || {
                     DataError::InvalidArgument(format!(
-                        "sequence range `{part}`: expected FIRST-LAST:FRAMES with numbers FIRST <= LAST, e.g. 00-07:4"
+                        "sequence range `{part}`: FIRST-LAST needs FIRST <= LAST and at most 10000 sequences, e.g. 00-07:4"
                     ))
                 };
-                let numeric = |t: &str| !t.is_empty() && t.bytes().all(|c| c.is_ascii_digit());
-                let (a, b) = (a.trim(), b.trim());
-                if !numeric(a) || !numeric(b) {
-                    return Err(bad());
-                }
                 let first: u32 = a.parse().map_err(|_| bad())?;
                 let last: u32 = b.parse().map_err(|_| bad())?;
                 if first > last || last - first >= 10_000 {
@@ -293,7 +291,7 @@ pub fn parse_sequences(spec: &str) -> Result<Vec<(String, usize)>, DataError> {
                 let width = a.len();
                 out.extend((first..=last).map(|i| (format!("{i:0width$}"), n)));
             }
-            None => out.push((name.to_string(), n)),
+            _ => out.push((name.to_string(), n)),
         }
     }
     if out.is_empty() {
@@ -640,9 +638,15 @@ mod tests {
             parse_sequences("07-07:3").unwrap(),
             vec![("07".to_string(), 3)]
         );
-        for bad in ["03-01:4", "a-b:4", "00-:4", "-3:4", "00-0x:2", "0-99999:1"] {
+        for bad in ["03-01:4", "0-99999:1", "00-02:x"] {
             let e = parse_sequences(bad).unwrap_err().to_string();
-            assert!(e.contains(bad.split(':').next().unwrap()), "{bad}: {e}");
+            assert!(e.contains(bad), "{bad}: {e}");
+        }
+        for plain in ["scene-a", "00-", "-3", "00-0x"] {
+            assert_eq!(
+                parse_sequences(&format!("{plain}:2")).unwrap(),
+                vec![(plain.to_string(), 2)]
+            );
         }
         let mut c = SynthConfig::new(Preset::KittiSmall, 1, vec![("00".into(), 3)]);
         assert!(c.validate().is_ok());
