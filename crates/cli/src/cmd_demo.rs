@@ -113,6 +113,13 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     let data = args.out.join("data");
     let train = synthetic::parse_sequences(&args.train)?;
     let val = synthetic::parse_sequences(&args.val)?;
+    if let Some((name, _)) = val.iter().find(|v| train.iter().any(|t| t.0 == v.0)) {
+        anyhow::bail!(
+            "sequence {name} is in both --train ({}) and --val ({}): the held-out street must not be trained on",
+            args.train,
+            args.val
+        );
+    }
     let mut cfg = match &args.config {
         Some(p) => RunConfig::load(p)?,
         None => RunConfig::from_toml(SYNTHETIC_TINY, "built-in configs/synthetic_tiny.toml")?,

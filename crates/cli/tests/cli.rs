@@ -281,6 +281,14 @@ fn train_resume_infer_eval_and_bad_input() {
         p(&root.join("p4")),
     ]);
     assert!(e.contains("05"), "{e}");
+    // The demo refuses to train on its held-out street, and a reversed sequence range, before
+    // writing anything.
+    let demo_out = root.join("demo");
+    let e = fails(&["demo", "--out", p(&demo_out), "--train", "00-09:1"]);
+    assert!(e.contains("08") && e.contains("--val"), "{e}");
+    let e = fails(&["demo", "--out", p(&demo_out), "--train", "07-03:2"]);
+    assert!(e.contains("07-03:2"), "{e}");
+    assert!(!demo_out.exists());
     let _ = std::fs::remove_dir_all(&root);
 }
 
