@@ -28,18 +28,17 @@ impl<B: Backend> ModelOutput<B> {
             .reduce(|a, b| a + b)
     }
 
-    /// Dense full-resolution class probabilities `[B][X*Y*Z*C]` (`C = num_classes`, class fastest):
-    /// the softmax of each predicted site, copied to its `upsample^3` children; sites that were not
-    /// predicted are certainly empty (probability 1 for class 0). Its argmax is
-    /// [`Self::dense_prediction`] (up to ties); averaging it over test-time augmentations is what it
-    /// is for.
+    /// Dense full-resolution class votes `[B][X*Y*Z*C]` (`C = num_classes`, class fastest): the
+    /// softmax of each predicted site, copied to its `upsample^3` children; voxels of sites that were
+    /// not predicted get an all-zero row (no vote). Its argmax is [`Self::dense_prediction`] (up to
+    /// ties; an all-zero row argmaxes to class 0, empty). Summing it over test-time augmentations is
+    /// what it is for: the sum averages the passes that predicted a voxel and leaves out those that
+    /// did not, so a voxel found by one pass only keeps that pass's classes. (Counting an unpredicted
+    /// voxel as certainly empty instead would make the mean an AND of the passes' sparse sets.)
     pub fn dense_probabilities(&self, batch_size: usize, full_dims: [usize; 3]) -> Vec<Vec<f32>> {
         let [fx, fy, fz] = full_dims;
         let c = self.logits.dims()[1].max(1);
         let mut out = vec![vec![0f32; fx * fy * fz * c]; batch_size];
-        for grid in &mut out {
-            grid.iter_mut().step_by(c).for_each(|p| *p = 1.0);
-        }
         if self.coords.is_empty() {
             return out;
         }
@@ -122,7 +121,7 @@ mod tests {
     type B = NdArray<f32>;
 
     #[test]
-    fn dense_probabilities_are_the_softmax_at_the_sites_and_empty_elsewhere() {
+    fn dense_probabilities_are_the_softmax_at_the_sites_and_no_vote_elsewhere() {
         let device = Default::default();
         let logits = Tensor::<B, 2>::from_data(
             TensorData::new(vec![0.0f32, 2.0, -1.0, 1.0, 0.5, 3.0], [2, 3]),
@@ -142,14 +141,22 @@ mod tests {
         assert_eq!(probs.len(), 2);
         for (b, (p, cls)) in probs.iter().zip(&classes).enumerate() {
             assert_eq!(p.len(), 64 * 3);
+            // One site per item, 8 children each: 8 rows sum to 1, the other 56 are all zero.
+            let mut voted = 0;
             for (v, pv) in p.chunks(3).enumerate() {
+                let sum = pv.iter().sum::<f32>();
                 assert!(
-                    (pv.iter().sum::<f32>() - 1.0).abs() < 1e-6,
-                    "item {b} voxel {v}"
+                    (sum - 1.0).abs() < 1e-6 || sum == 0.0,
+                    "item {b} voxel {v}: {pv:?}"
                 );
-                let arg = (0..3).max_by(|&i, &j| pv[i].total_cmp(&pv[j])).unwrap();
+                voted += usize::from(sum > 0.0);
+                let arg = (0..3)
+                    .rev()
+                    .max_by(|&i, &j| pv[i].total_cmp(&pv[j]))
+                    .unwrap();
                 assert_eq!(arg as u8, cls[v], "item {b} voxel {v}");
             }
+            assert_eq!(voted, 8, "item {b}");
         }
         // Site (0, 0, 1, 0) covers full-resolution x 0..2, y 2..4, z 0..2 of item 0: voxel (1, 3, 1).
         let e = [0.0f32.exp(), 2.0f32.exp(), (-1.0f32).exp()];
@@ -159,8 +166,9 @@ mod tests {
         for k in 0..3 {
             assert!((probs[0][i + k] - e[k] / s).abs() < 1e-6);
         }
-        // A voxel no site covers is certainly empty.
-        assert_eq!(&probs[0][0..3], &[1.0, 0.0, 0.0]);
+        // A voxel no site covers has no vote (and its prediction is empty).
+        assert_eq!(&probs[0][0..3], &[0.0, 0.0, 0.0]);
+        assert_eq!(classes[0][0], 0);
         assert_eq!(classes[1][((2 * 4) * 4 + 2) as usize], 2);
     }
 }
