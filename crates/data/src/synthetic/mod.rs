@@ -45,7 +45,9 @@
 //! frame), `image_2/NNNNNN.png`, `velodyne/NNNNNN.bin` + `labels/NNNNNN.label` (the simulated scan;
 //! raw ids, instance 0), and for every frame `voxels/NNNNNN.bin` (voxels holding a LiDAR return of
 //! this frame), `.label` (complete scene, raw SemanticKITTI ids), `.invalid` (voxels that no LiDAR
-//! ray and no camera pixel ray of any frame of the sequence traversed or stopped in) and
+//! ray and no camera pixel ray of any frame of the sequence traversed or stopped in, nor any LiDAR
+//! ray of the drive on past the last frame through its whole volume, as SemanticKITTI accumulates
+//! the scans that follow a frame: about a quarter of the volume, like the real frames) and
 //! `.occluded` (the same for this frame's rays only).
 //!
 //! `surround`: `OUT/samples/<CHANNEL>/*.png` (six cameras), `OUT/samples/LIDAR_TOP/*.pcd.bin`
@@ -95,7 +97,7 @@ pub const META_FILE: &str = "synthetic.json";
 /// Value of [`SynthMeta::format`].
 pub const META_FORMAT: &str = "sparseocc-synthetic";
 /// Version of the generator (changes when the same seed would give different files).
-pub const GENERATOR_VERSION: u32 = 1;
+pub const GENERATOR_VERSION: u32 = 2;
 /// Most frames per sequence (the sequence-wide visibility bitset grows with the distance driven:
 /// 20000 frames of `kitti` need about 130 MB).
 pub const MAX_FRAMES: usize = 20_000;
