@@ -21,5 +21,5 @@ pub use folder::{
     score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
     FolderOptions, Occ3dMask,
 };
-pub use protocol::{EvalMask, Evaluator, Protocol};
+pub use protocol::{EvalMask, Evaluator, Protocol, SEMANTIC_KITTI_GROUND_CLASSES};
 pub use report::{format_table, EvalReport, PerClass};

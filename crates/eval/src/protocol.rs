@@ -40,6 +40,10 @@ use serde::{Deserialize, Serialize};
 /// SemanticKITTI learning-class names, index 0..=19 (FACTS.md §1), as defined by the reader.
 pub const SEMANTIC_KITTI_CLASSES: [&str; 20] = occ_data::formats::semantic_kitti::CLASS_NAMES;
 
+/// SemanticKITTI learning classes of the ground (road, parking, sidewalk, other-ground, terrain);
+/// every other class but empty is an object or a structure standing on it.
+pub const SEMANTIC_KITTI_GROUND_CLASSES: [usize; 5] = [9, 10, 11, 12, 17];
+
 /// nuScenes-Occupancy class names, index 0..=16 (FACTS.md §3; 0 = empty, noise is ignored as 255).
 pub const NUSCENES_OCCUPANCY_CLASSES: [&str; 17] =
     occ_data::formats::nuscenes_occupancy::CLASS_NAMES;

@@ -44,6 +44,38 @@ pub struct EvalReport {
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct PerClass(pub Vec<(String, f64)>);
 
+impl EvalReport {
+    /// Share of the evaluated ground-truth voxels of the classes `gt_classes` that are predicted
+    /// occupied (any class but 0), from the confusion matrix: the completion recall restricted to
+    /// those classes. `NaN` when none of them was evaluated.
+    pub fn occupied_recall_of(&self, gt_classes: &[usize]) -> f64 {
+        let (mut found, mut total) = (0u64, 0u64);
+        for (pred, row) in self.confusion.iter().enumerate() {
+            for &gt in gt_classes {
+                let n = row.get(gt).copied().unwrap_or(0);
+                total += n;
+                if pred != 0 {
+                    found += n;
+                }
+            }
+        }
+        if total == 0 {
+            f64::NAN
+        } else {
+            found as f64 / total as f64
+        }
+    }
+
+    /// [`Self::occupied_recall_of`] over every class but empty and the ground classes (SemanticKITTI:
+    /// [`crate::protocol::SEMANTIC_KITTI_GROUND_CLASSES`]): how much of what stands on the ground
+    /// (vehicles, people, buildings, vegetation, fences, poles, signs) is found.
+    pub fn non_ground_recall(&self, ground: &[usize]) -> f64 {
+        let n = self.confusion.first().map_or(0, Vec::len);
+        let classes: Vec<usize> = (1..n).filter(|c| !ground.contains(c)).collect();
+        self.occupied_recall_of(&classes)
+    }
+}
+
 impl PerClass {
     /// IoU of the class called `name`.
     pub fn get(&self, name: &str) -> Option<f64> {

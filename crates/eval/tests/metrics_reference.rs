@@ -327,6 +327,24 @@ fn hand_computed_semantic_kitti() {
     assert!((r.recall - 1.0).abs() < 1e-6);
 }
 
+/// Non-ground recall by hand: GT car (1), car, road (9), building (13), terrain (17), fence (14);
+/// predicted road, empty, road, road, empty, fence. The ground classes (road, terrain) do not count;
+/// of the other four GT voxels, car/road, building/road and fence/fence are predicted occupied (the
+/// class need not match): 3 of 4. Restricted to
+/// {road, terrain}: road/road is occupied, terrain/empty is not: 1 of 2.
+#[test]
+fn hand_computed_non_ground_recall() {
+    use occ_eval::SEMANTIC_KITTI_GROUND_CLASSES;
+    let gt = [1u8, 1, 9, 13, 17, 14];
+    let pred = [9u8, 0, 9, 9, 0, 14];
+    let mut ev = Evaluator::new(Protocol::SemanticKitti);
+    ev.add_frame(&pred, &gt, EvalMask::All, "ng").unwrap();
+    let r = ev.report();
+    assert!((r.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES) - 0.75).abs() < 1e-12);
+    assert!((r.occupied_recall_of(&[9, 17]) - 0.5).abs() < 1e-12);
+    assert!(r.occupied_recall_of(&[2]).is_nan());
+}
+
 #[test]
 fn hand_computed_occ3d_and_nuscenes() {
     // Occ3D: classes 0 (others), 4 (car), 17 (free). Camera mask drops the last voxel.
