@@ -13,6 +13,7 @@ mod cmd_prepare;
 mod cmd_synth;
 mod cmd_train;
 mod cmd_viz;
+mod curves;
 mod labels_io;
 mod progress;
 mod util;

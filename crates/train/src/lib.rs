@@ -9,6 +9,7 @@ pub mod dataset;
 pub mod error;
 pub mod grads;
 pub mod infer;
+pub mod log;
 pub mod mirror;
 pub mod schedule;
 pub mod shift;
