@@ -15,7 +15,9 @@ use anyhow::{Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
 use occ_data::synthetic::{self, Preset, SynthConfig};
-use occ_eval::{score_semantic_kitti_folder, EvalReport, FolderOptions};
+use occ_eval::{
+    score_semantic_kitti_folder, EvalReport, FolderOptions, SEMANTIC_KITTI_GROUND_CLASSES,
+};
 use occ_model::ModelKind;
 use occ_train::RunConfig;
 use std::path::{Path, PathBuf};
@@ -108,6 +110,15 @@ fn prior_baseline(
     )?)
 }
 
+/// A metric for JSON: `null` when it is undefined (NaN), as the evaluation reports write them.
+fn nan_null(v: f64) -> serde_json::Value {
+    if v.is_finite() {
+        serde_json::json!(v)
+    } else {
+        serde_json::Value::Null
+    }
+}
+
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
     let data = args.out.join("data");
@@ -169,6 +180,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     eprintln!("[4/5] predicting and scoring the held-out sequence");
     let pred_root = args.out.join("predictions");
     let (report, spf) = crate::cmd_train::validate_on(&outcome.model, &cfg, &data, &pred_root)?;
+    crate::curves::write_curves(&run_dir, Some((report.iou, report.miou)))?;
 
     eprintln!("[5/5] rendering");
     let paths = KittiPaths::new(&data);
@@ -199,6 +211,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         "precision": report.precision,
         "recall": report.recall,
         "per_class": report.per_class,
+        "non_ground_recall": nan_null(report.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES)),
         "frames": report.frames,
         "train_seconds": train_seconds,
         "train_steps": outcome.summary.steps,
@@ -211,6 +224,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             "iou": prior.iou,
             "miou": prior.miou,
             "per_class": prior.per_class,
+            "non_ground_recall": nan_null(prior.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES)),
         },
         "synth_frames": summary.frames,
         "renders": renders,
@@ -219,12 +233,14 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     });
     crate::util::write_json(&args.out.join("summary.json"), &summary_json)?;
     eprintln!(
-        "{}: IoU {:.3}, mIoU {:.3} | per-voxel prior: IoU {:.3}, mIoU {:.3}",
+        "{}: IoU {:.3}, mIoU {:.3}, non-ground recall {:.3} | per-voxel prior: IoU {:.3}, mIoU {:.3}, non-ground recall {:.3}",
         cfg.model.kind.name(),
         report.iou,
         report.miou,
+        report.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES),
         prior.iou,
-        prior.miou
+        prior.miou,
+        prior.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES),
     );
     eprintln!(
         "done in {:.1} s; summary in {}",
