@@ -119,7 +119,12 @@ pub fn run_with(
     // Depth supervision (SparseOcc, dense baseline, SparseOcc++ with the depth gate) and the image
     // semantic targets of SparseOcc++'s `sem2d_aux` need the LiDAR scans.
     let pp = cfg.model.pp_config();
-    ds.set_load_points(cfg.model.kind != ModelKind::SparseOccPP || pp.depth_gate || pp.sem2d_aux);
+    ds.set_load_points(
+        cfg.model.kind != ModelKind::SparseOccPP
+            || pp.depth_gate
+            || pp.sem2d_aux
+            || pp.depth_oracle,
+    );
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",
@@ -207,6 +212,7 @@ pub fn run_with(
         json["val_seconds_per_frame"] = serde_json::json!(spf);
     }
     crate::util::write_json(&out.join("summary.json"), &json)?;
+    crate::curves::write_curves(out, val.as_ref().map(|r| (r.iou, r.miou)))?;
     Ok(TrainOutcome { model, summary })
 }
 
@@ -218,7 +224,11 @@ pub fn validate_on(
     data: &Path,
     pred_root: &Path,
 ) -> Result<(Report, f64)> {
-    let ds = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
+    let mut ds = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
+    // Only the depth-oracle diagnostic reads the LiDAR scan at test time.
+    ds.set_load_points(
+        cfg.model.kind == ModelKind::SparseOccPP && cfg.model.pp_config().depth_oracle,
+    );
     let pb = progress::bar(ds.len() as u64, "predict");
     let written = predict_dataset(
         model,

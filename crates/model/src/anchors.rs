@@ -31,8 +31,29 @@
 //! (`(idx + 0.5)/dims`), so the same physical position gets the same code at every level.
 
 use crate::batch::Batch;
+use crate::dca::ViewHits;
 use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
 use crate::depth_gate::DepthMap;
+use crate::depth_oracle::DepthOracle;
+
+/// The gate of every hit: the learned depth map's ([`crate::depth_gate`]), the diagnostic oracle's
+/// ([`crate::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
+pub(crate) fn combined_gate<B: Backend>(
+    depth: Option<&DepthMap<B>>,
+    oracle: Option<&DepthOracle>,
+    hits: &ViewHits,
+    voxel_m: f64,
+    device: &B::Device,
+) -> Result<Option<Tensor<B, 1>>, ModelError> {
+    let learned = depth.map(|m| m.hit_gate(hits)).transpose()?;
+    let oracle = oracle
+        .map(|o| o.hit_gate::<B>(hits, voxel_m, device))
+        .transpose()?;
+    Ok(match (learned, oracle) {
+        (Some(a), Some(b)) => Some(a * b),
+        (a, b) => a.or(b),
+    })
+}
 use crate::error::ModelError;
 use burn::module::Param;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -347,13 +368,14 @@ impl<B: Backend> AnchorGenerator<B> {
         strides: &[usize],
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,
+        oracle: Option<&DepthOracle>,
     ) -> Result<(Tensor<B, 2>, LevelPrediction<B>), ModelError> {
         let device = feats.device();
         let dims = self.level_dims(r);
         let grid = batch.grid.downsampled(LEVEL_FACTORS[r]);
         let pos = self.pos.encode(&coords, dims, &device);
         let hits = project_queries(&coords, &grid, &batch.cameras, batch.image_hw())?;
-        let gate = depth.map(|m| m.hit_gate(&hits)).transpose()?;
+        let gate = combined_gate(depth, oracle, &hits, grid.voxel_size_m, &device)?;
         let x = stage
             .dca
             .forward_gated(feats, pos, &hits, images, strides, gate)?;
@@ -382,6 +404,7 @@ impl<B: Backend> AnchorGenerator<B> {
         strides: &[usize],
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,
+        oracle: Option<&DepthOracle>,
     ) -> Result<AnchorOutput<B>, ModelError> {
         if batch.grid.dims != self.full_dims {
             return Err(ModelError::Input(format!(
@@ -415,6 +438,7 @@ impl<B: Backend> AnchorGenerator<B> {
                         strides,
                         batch,
                         depth,
+                        oracle,
                     )?;
                     crate::profile::trace_mark(&format!("anchors level {r}"), &x);
                     let scores = occupancy_score(&pred.logits);
@@ -498,8 +522,9 @@ impl<B: Backend> AnchorGenerator<B> {
                         .select(0, index_tensor::<B>(&parents, &device))
                 };
                 let n = coords.len();
-                let (x, mut pred) =
-                    self.run_stage(stage, 2, coords, feats, images, strides, batch, depth)?;
+                let (x, mut pred) = self.run_stage(
+                    stage, 2, coords, feats, images, strides, batch, depth, oracle,
+                )?;
                 pred.kept = (0..n).collect();
                 let anchors = SparseTensor::new(pred.coords.clone(), x, dims2, bsz)?;
                 stats.push(("anchor_uniform".to_string(), n));

@@ -14,6 +14,7 @@ pub mod dca;
 mod dca_host;
 pub mod dense_baseline;
 pub mod depth_gate;
+pub mod depth_oracle;
 pub mod error;
 pub mod fpn;
 mod host_data;

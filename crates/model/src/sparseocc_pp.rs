@@ -13,10 +13,12 @@
 //! bins / regression, propagation on / off ("off" = the "sparse anchor voxel only" row: the final
 //! stage runs on the anchors themselves and no SCF heads exist).
 
+use crate::anchors::combined_gate;
 use crate::anchors::{AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction};
 use crate::batch::Batch;
 use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
 use crate::depth_gate::{DepthGate, DepthGateConfig, DepthMap};
+use crate::depth_oracle::DepthOracle;
 use crate::error::ModelError;
 use crate::loss::{ce::cross_entropy, occ_loss};
 use crate::output::ModelOutput;
@@ -130,6 +132,11 @@ pub struct SparseOccPPConfig {
     /// Weight of the image semantic loss (applied when the batch carries LiDAR points and targets).
     #[config(default = 1.0)]
     pub sem2d_loss_weight: f64,
+    /// DIAGNOSTIC, not a model option (needs the LiDAR scan at test time): gate every DCA sample by
+    /// whether its voxel lies at the LiDAR surface depth of its reference pixel
+    /// ([`crate::depth_oracle`]).
+    #[config(default = false)]
+    pub depth_oracle: bool,
 }
 
 impl SparseOccPPConfig {
@@ -349,9 +356,14 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             .sem2d
             .as_ref()
             .map(|head| head.forward(feats[0].clone(), strides[0]));
+        let oracle = if cfg.depth_oracle {
+            DepthOracle::from_batch(batch)?
+        } else {
+            None
+        };
         let gen = self
             .anchors
-            .forward(feats, strides, batch, depth.as_ref())?;
+            .forward(feats, strides, batch, depth.as_ref(), oracle.as_ref())?;
         crate::profile::mark("anchors", gen.anchors.feats());
         let mut stats = gen.stats;
         let anchors = gen.anchors;
@@ -383,7 +395,13 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             .pos
             .encode(completed.coords(), out_dims, &device);
         let hits = project_queries(completed.coords(), &grid, &batch.cameras, batch.image_hw())?;
-        let gate = depth.as_ref().map(|m| m.hit_gate(&hits)).transpose()?;
+        let gate = combined_gate(
+            depth.as_ref(),
+            oracle.as_ref(),
+            &hits,
+            grid.voxel_size_m,
+            &device,
+        )?;
         let x =
             self.dca
                 .forward_gated(completed.feats().clone(), pos, &hits, feats, strides, gate)?;

@@ -42,7 +42,6 @@ pub fn predict_sample<B: SparseConvBackend>(
     let forward = |s: &Sample| -> Result<occ_model::ModelOutput<B>, TrainError> {
         let mut batch = collate::<B>(std::slice::from_ref(s), grid, device)?;
         batch.target = None;
-        batch.points = None;
         Ok(model.forward(&batch)?)
     };
     let out = forward(sample)?;
@@ -60,7 +59,6 @@ pub fn predict_sample<B: SparseConvBackend>(
     }
     let mut mirrored = Sample {
         target: None,
-        points: None,
         ..sample.clone()
     };
     mirror_sample_y(&mut mirrored, &grid)?;
@@ -99,7 +97,10 @@ pub fn predict_sample<B: SparseConvBackend>(
 
 /// Class of every voxel of `dims` from the mean of `probs` (`[X][Y][Z][C]`) and `probs_mirrored`,
 /// the probabilities of the mirrored scene (voxel column `y` of it is column `Y - 1 - y` of the
-/// scene). `None` if the two are not `X·Y·Z·C` values for the same `C`.
+/// scene), as [`occ_model::ModelOutput::dense_probabilities`] gives them: a voxel that one pass did
+/// not predict has an all-zero row there, so it takes the other pass's classes (the mean over the
+/// passes that predicted it), and one that neither predicted is empty. `None` if the two are not
+/// `X·Y·Z·C` values for the same `C`.
 pub fn mean_of_mirrored_argmax(
     probs: &[f32],
     probs_mirrored: &[f32],
@@ -223,6 +224,14 @@ mod tests {
         // y = 0 pairs with mirrored y = 2: (0.9 + 0.0, 0.1 + 1.0) -> class 1;
         // y = 1 with mirrored y = 1: (0.4 + 0.9, 0.6 + 0.1) -> class 0;
         // y = 2 with mirrored y = 0: (0.5 + 0.2, 0.5 + 0.8) -> class 1.
+        assert_eq!(c, vec![1, 0, 1]);
+        // A voxel predicted by one pass only (an all-zero row in the other) keeps that pass's
+        // class even when it is not sure of it; one predicted by neither is empty.
+        let probs = [0.4, 0.6, 0.0, 0.0, 0.0, 0.0];
+        let probs_m = [0.3, 0.7, 0.0, 0.0, 0.0, 0.0];
+        // y = 0: (0.4, 0.6) + mirrored y = 2 (0, 0) -> 1; y = 1: nothing -> 0; y = 2: (0, 0) +
+        // mirrored y = 0 (0.3, 0.7) -> 1.
+        let c = mean_of_mirrored_argmax(&probs, &probs_m, [1, 3, 1]).unwrap();
         assert_eq!(c, vec![1, 0, 1]);
         assert!(mean_of_mirrored_argmax(&probs, &probs_m[..4], [1, 3, 1]).is_none());
         assert!(mean_of_mirrored_argmax(&probs, &probs_m, [1, 4, 1]).is_none());
