@@ -1,5 +1,6 @@
-//! Learning curves: `RUN/curves.png` from `RUN/train_log.csv` (every loss term and the total over
-//! the steps, log scale), with the validation scores in the title when validation ran.
+//! Learning curves: `RUN/curves.png` from `RUN/train_log.csv` (the total loss and the sum of each
+//! group of terms over the steps, log scale), with the validation scores in the title when
+//! validation ran.
 
 use anyhow::{Context, Result};
 use occ_train::log::read_train_log;
@@ -30,7 +31,17 @@ pub fn write_curves(run: &Path, val: Option<(f64, f64)>) -> Result<PathBuf> {
         points: rows.iter().map(|r| (r.step as f64, r.loss)).collect(),
     }];
     for r in &rows {
+        // Terms are grouped by the part before their first '.' (`occ.ce` + `occ.lovasz` + … = `occ`,
+        // one line per anchor level, `scf`): 19 lines of SparseOcc++ would hide each other.
+        let mut groups: Vec<(String, f64)> = Vec::new();
         for (name, v) in &r.terms {
+            let g = name.split('.').next().unwrap_or(name).to_string();
+            match groups.iter_mut().find(|(n, _)| *n == g) {
+                Some((_, sum)) => *sum += v,
+                None => groups.push((g, *v)),
+            }
+        }
+        for (name, v) in &groups {
             let i = match series.iter().position(|s| &s.name == name) {
                 Some(i) => i,
                 None => {
@@ -50,7 +61,7 @@ pub fn write_curves(run: &Path, val: Option<(f64, f64)>) -> Result<PathBuf> {
     }
     let title = match val {
         Some((iou, miou)) => format!(
-            "training loss ({} logged steps); validation IoU {iou:.3}, mIoU {miou:.3}",
+            "training loss ({} logged steps), validation IoU {iou:.3}, mIoU {miou:.3}",
             rows.len()
         ),
         None => format!("training loss ({} logged steps)", rows.len()),

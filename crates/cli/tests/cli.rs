@@ -121,9 +121,12 @@ fn train_resume_infer_eval_and_bad_input() {
         "train_log.csv",
         "summary.json",
         "checkpoint/model.bin",
+        "curves.png",
     ] {
         assert!(run_dir.join(f).exists(), "{f} missing");
     }
+    let curves = occ_data::image::read_png(&run_dir.join("curves.png")).unwrap();
+    assert_eq!((curves.width, curves.height), (1000, 600));
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(run_dir.join("summary.json")).unwrap()).unwrap();
     let miou = summary["miou"].as_f64().expect("validation mIoU");

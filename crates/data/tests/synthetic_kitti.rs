@@ -201,6 +201,13 @@ fn files_read_back_and_are_mutually_consistent() {
         }
         let inv = s.invalid[f].iter().filter(|&&v| v == 1).count() as f64 / vox.len() as f64;
         assert!(inv > 0.05 && inv < 0.9, "invalid fraction {inv}");
+        // The drive on through the volume (SemanticKITTI's accumulated scans) observes much of
+        // what this frame's own rays did not: `.invalid` is far smaller than `.occluded`.
+        let occ = s.occluded[f].iter().filter(|&&v| v == 1).count() as f64 / vox.len() as f64;
+        assert!(
+            inv < 0.8 * occ,
+            "frame {f}: invalid {inv:.3} not well below occluded {occ:.3}"
+        );
     }
     // consecutive frames share a world: the LiDAR poses move forward and the labels of the
     // overlapping part agree voxel for voxel

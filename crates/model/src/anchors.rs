@@ -352,7 +352,7 @@ impl<B: Backend> AnchorGenerator<B> {
         self.mode
     }
 
-    fn level_dims(&self, r: usize) -> [usize; 3] {
+    pub fn level_dims(&self, r: usize) -> [usize; 3] {
         self.full_dims.map(|d| d / LEVEL_FACTORS[r])
     }
 

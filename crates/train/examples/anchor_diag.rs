@@ -41,6 +41,50 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .transpose()?
         .unwrap_or(ds.len());
     let pp = model.pp.as_ref().ok_or("not a SparseOcc++ run")?;
+    // Sampling-offset drift at level 0, whose queries are image-independent (learned embedding +
+    // position code of every 1/8-resolution candidate): mean |offset| in feature pixels per image
+    // level, trained (W·q + b) against the bias alone and against the initial ring's scale.
+    {
+        let a = &pp.anchors;
+        let dims0 = a.level_dims(0);
+        let coords = occ_sparse::full_grid_coords(1, dims0);
+        let q = a.embed0.val() + a.pos.encode(&coords, dims0, &device);
+        let dca = &a.stages[0].dca;
+        let (off, _) = dca.sampling(q);
+        let [n, m, l, p, _] = off.dims();
+        let v: Vec<f32> = off.into_data().convert::<f32>().to_vec().map_err(|e| format!("{e:?}"))?;
+        let b: Vec<f32> = dca
+            .sampling_offsets
+            .bias
+            .as_ref()
+            .map(|b| b.val().into_data().convert::<f32>().to_vec().unwrap_or_default())
+            .unwrap_or_default();
+        for lv in 0..l {
+            let (mut s, mut sb, mut mx) = (0.0f64, 0.0f64, 0.0f64);
+            let mut cnt = 0usize;
+            for qi in 0..n {
+                for h in 0..m {
+                    for pt in 0..p {
+                        let i = (((qi * m + h) * l + lv) * p + pt) * 2;
+                        let d = ((v[i] as f64).powi(2) + (v[i + 1] as f64).powi(2)).sqrt();
+                        s += d;
+                        mx = mx.max(d);
+                        if qi == 0 {
+                            let j = ((h * l + lv) * p + pt) * 2;
+                            sb += ((b[j] as f64).powi(2) + (b[j + 1] as f64).powi(2)).sqrt();
+                        }
+                        cnt += 1;
+                    }
+                }
+            }
+            println!(
+                "level-0 DCA offsets, image level {lv}: mean |offset| {:.2} feature px (max {:.2}); bias alone {:.2}",
+                s / cnt.max(1) as f64,
+                mx,
+                sb / (m * p).max(1) as f64
+            );
+        }
+    }
     let nc = cfg.model.num_classes;
     let mut conf = vec![vec![0usize; nc]; nc]; // final: gt x pred (final voxels only)
     let mut conf_l2 = vec![vec![0usize; nc]; nc]; // level-2 anchor logits on the kept anchors
@@ -162,6 +206,54 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
         let pred = argmax1(&out.out.logits)?;
+        if out.out.upsample == 1 && t.labels.len() == pred.len() && pred.len() % 8 == 0 {
+            // Full-resolution children, 8 per final voxel in order: for the final voxels with a
+            // valid occupied child of a non-ground class, the share of their valid children that
+            // are occupied, and how many of them have every child predicted empty.
+            let ground = [9usize, 10, 11, 12, 17];
+            let (mut parents, mut occ_share, mut all_empty, mut child_occ_pred) = (0, 0.0, 0, 0);
+            let (mut up_parents, mut up_all_empty, mut up_occ, mut up_pred_occ) = (0, 0, 0, 0);
+            for ((lab, pr), cs) in t
+                .labels
+                .chunks(8)
+                .zip(pred.chunks(8))
+                .zip(out.out.coords.chunks(8))
+            {
+                if cs[0][3] >= 2 {
+                    // the final voxel lies above the 1/2-resolution ground layer
+                    let occ = lab.iter().filter(|&&l| l != 0 && l != 255).count();
+                    if occ > 0 {
+                        up_parents += 1;
+                        up_occ += occ;
+                        up_all_empty += usize::from(pr.iter().all(|&p| p == 0));
+                        up_pred_occ += lab
+                            .iter()
+                            .zip(pr)
+                            .filter(|(&l, &p)| l != 0 && l != 255 && p != 0)
+                            .count();
+                    }
+                }
+                let ng = lab
+                    .iter()
+                    .any(|&l| l != 0 && l != 255 && !ground.contains(&(l as usize)));
+                if !ng {
+                    continue;
+                }
+                parents += 1;
+                let valid = lab.iter().filter(|&&l| l != 255).count();
+                let occ = lab.iter().filter(|&&l| l != 0 && l != 255).count();
+                occ_share += occ as f64 / valid.max(1) as f64;
+                all_empty += usize::from(pr.iter().all(|&p| p == 0));
+                child_occ_pred += pr.iter().filter(|&&p| p != 0).count();
+            }
+            println!(
+                "frame {i}: final voxels with a valid non-ground occupied child: {parents}; mean share of their valid children occupied {:.2}; all 8 children predicted empty {all_empty}; children predicted occupied {child_occ_pred}",
+                occ_share / parents.max(1) as f64
+            );
+            println!(
+                "frame {i}: final voxels above the 1/2-res ground layer with a valid occupied child: {up_parents} ({up_occ} such children, {up_pred_occ} predicted occupied); all 8 children predicted empty {up_all_empty}"
+            );
+        }
         for (&g, &p) in t.labels.iter().zip(&pred) {
             if g != 255 {
                 conf[g as usize][p as usize] += 1;
