@@ -86,7 +86,7 @@ fn writes_preprocessed_labels() {
             write_packed_bits(&p.voxels(seq, f, "bin"), &invalid).unwrap();
             if !(seq == "00" && *f == "000010") {
                 write_packed_bits(&p.voxels(seq, f, "invalid"), &invalid).unwrap();
-                // expected targets computed here straight from the FACTS rule
+                // expected targets computed here straight from the rule of docs/formats.md §2.5
                 let full: Vec<u8> = raw
                     .iter()
                     .zip(&invalid)

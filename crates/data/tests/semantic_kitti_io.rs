@@ -50,7 +50,7 @@ fn round_trips_of_every_format() {
     assert!(classes
         .iter()
         .all(|&c| (c as usize) < NUM_CLASSES || c == 255));
-    // raw 0 plus the 30 raw ids of the FACTS table
+    // raw 0 plus the 30 raw ids of the remap table (docs/formats.md §2.4)
     assert_eq!(classes.iter().filter(|&&c| c != 255).count(), 1 + 30);
 
     // preprocessed .npy (float32), full and half resolution

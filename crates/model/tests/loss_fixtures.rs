@@ -224,7 +224,7 @@ fn occ_loss_terms_match_fixture() {
     }
 }
 
-/// The fixture's class weights are MonoScene's `1/ln(f+0.001)` (FACTS §1), when it has 20 classes.
+/// The fixture's class weights are MonoScene's `1/ln(f+0.001)` (docs/losses.md §2), when it has 20 classes.
 #[test]
 fn fixture_class_weights_are_monoscene() {
     let Some(case) = load_case() else { return };

@@ -12,7 +12,7 @@ use pp_common::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// The FACTS.md §1 rule written out directly: counts of 0 and 255, then the majority label in 1..=254
+/// The docs/formats.md §2.6 rule written out directly: counts of 0 and 255, then the majority label in 1..=254
 /// with ties to the smaller id.
 fn brute_block(labels: &[u8]) -> u8 {
     let n0 = labels.iter().filter(|&&l| l == 0).count();
