@@ -1,5 +1,5 @@
-//! RGB images (PNG, and baseline/progressive JPEG as nuScenes ships its camera images) and the camera-image pipeline of SparseOcc/OccFormer (FACTS.md §1 "SO/OF
-//! image pipeline"): resize, crop, flip, rotate in one resampling pass, ImageNet normalisation
+//! RGB images (PNG, and baseline/progressive JPEG as nuScenes ships its camera images) and the camera-image pipeline of SparseOcc/OccFormer (docs/formats.md
+//! §2.8): resize, crop, flip, rotate in one resampling pass, ImageNet normalisation
 //! to CHW float32, and the matching post-augmentation matrix.
 
 use crate::error::DataError;
@@ -236,7 +236,7 @@ pub fn normalize_chw(img: &RgbImage) -> Vec<f32> {
     out
 }
 
-/// Settings of the camera-image pipeline (SparseOcc KITTI `data_config`, FACTS.md §1).
+/// Settings of the camera-image pipeline (SparseOcc KITTI `data_config`, docs/formats.md §2.8).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ImagePipelineConfig {
     /// Network input width (1280 for KITTI).
@@ -263,7 +263,7 @@ impl ImagePipelineConfig {
         }
     }
 
-    /// Test-time transform for a `W x H` raw image: `r = out_w/W`, bottom crop (FACTS.md §1).
+    /// Test-time transform for a `W x H` raw image: `r = out_w/W`, bottom crop (docs/formats.md §2.8).
     pub fn test_aug(&self, src_width: usize, src_height: usize) -> ImageAug {
         ImageAug::kitti_test(src_width, src_height, self.out_width, self.out_height)
     }

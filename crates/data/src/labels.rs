@@ -1,5 +1,5 @@
 //! Label remaps (SemanticKITTI learning map and its inverse) and label-grid downsampling
-//! (FACTS.md §1 "Remap" and "Downsample rule").
+//! (docs/formats.md §2.4 and §2.6).
 
 use crate::error::DataError;
 
@@ -16,7 +16,7 @@ pub struct LearningMap {
     num_classes: usize,
 }
 
-/// SemanticKITTI `learning_map` (raw id -> class), FACTS.md §1. Raw ids mapping to 0 in the yaml
+/// SemanticKITTI `learning_map` (raw id -> class), docs/formats.md §2.4. Raw ids mapping to 0 in the yaml
 /// (1 outlier, 52 other-structure, 99 other-object) are listed as 0 and become 255.
 const SEMANTIC_KITTI_LEARNING_MAP: [(u16, u8); 34] = [
     (0, 0),
@@ -55,7 +55,7 @@ const SEMANTIC_KITTI_LEARNING_MAP: [(u16, u8); 34] = [
     (259, 5),
 ];
 
-/// SemanticKITTI `learning_map_inv` (class -> raw id), FACTS.md §1.
+/// SemanticKITTI `learning_map_inv` (class -> raw id), docs/formats.md §2.4.
 const SEMANTIC_KITTI_LEARNING_MAP_INV: [u16; 20] = [
     0, 10, 11, 15, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51, 70, 71, 72, 80, 81,
 ];
@@ -146,7 +146,7 @@ fn check_grid(labels_len: usize, dims: [usize; 3]) -> Result<usize, DataError> {
 }
 
 /// Downsample a label grid by `factor` with the MonoScene / SparseOcc / VoxFormer
-/// `_downsample_label` rule (FACTS.md §1), per `factor³` block:
+/// `_downsample_label` rule (docs/formats.md §2.6), per `factor³` block:
 /// if `n0 + n255 > 0.95·factor³` the label is 0 when `n0 > n255`, else 255 (so a tie gives
 /// 255); otherwise it is the most frequent label in `1..=254`, ties to the smaller id.
 ///

@@ -1,6 +1,6 @@
 //! `sparseocc prepare semantickitti --root DIR [--check]`: check a SemanticKITTI layout and
-//! write the preprocessed labels `labels/XX/NNNNNN_1_1.npy` and `_1_2.npy` (FACTS.md §1
-//! "Preprocessed labels": `lut[label]`, 255 where invalid, float32, 256x256x32 and 128x128x16).
+//! write the preprocessed labels `labels/XX/NNNNNN_1_1.npy` and `_1_2.npy` (docs/formats.md
+//! §2.5: `lut[label]`, 255 where invalid, float32, 256x256x32 and 128x128x16).
 
 use crate::error::DataError;
 use crate::formats::io::create_dir_all;

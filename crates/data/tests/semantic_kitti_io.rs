@@ -50,7 +50,7 @@ fn round_trips_of_every_format() {
     assert!(classes
         .iter()
         .all(|&c| (c as usize) < NUM_CLASSES || c == 255));
-    // raw 0 plus the 30 raw ids of the FACTS table
+    // raw 0 plus the 30 raw ids of the remap table (docs/formats.md §2.4)
     assert_eq!(classes.iter().filter(|&&c| c != 255).count(), 1 + 30);
 
     // preprocessed .npy (float32), full and half resolution
@@ -84,25 +84,26 @@ fn round_trips_of_every_format() {
     }
     assert!(write_prediction(d, &frame, &grid[..10], &map).is_err());
 
-    // calibration and poses
-    let root = kitti_root();
-    let real = read_calib(&KittiPaths::new(&root).calib("00")).unwrap();
-    write_calib(&d.join("calib.txt"), &real).unwrap();
-    let c2 = read_calib(&d.join("calib.txt")).unwrap();
-    for i in 0..3 {
-        for j in 0..4 {
-            assert!((c2.p2[i][j] - real.p2[i][j]).abs() <= 1e-9 * real.p2[i][j].abs().max(1.0));
-            assert!((c2.tr[i][j] - real.tr[i][j]).abs() <= 1e-12);
-        }
-    }
-    let poses = read_poses(&KittiPaths::new(&root).poses("08")).unwrap();
-    write_poses(&d.join("poses.txt"), &poses[..50]).unwrap();
-    let p2 = read_poses(&d.join("poses.txt")).unwrap();
-    assert_eq!(p2.len(), 50);
-    for (a, b) in p2.iter().zip(&poses) {
-        for i in 0..4 {
+    // calibration and poses (from the real sample; skipped with a note without it)
+    if let Some(root) = kitti_root() {
+        let real = read_calib(&KittiPaths::new(&root).calib("00")).unwrap();
+        write_calib(&d.join("calib.txt"), &real).unwrap();
+        let c2 = read_calib(&d.join("calib.txt")).unwrap();
+        for i in 0..3 {
             for j in 0..4 {
-                assert!((a[i][j] - b[i][j]).abs() < 1e-9);
+                assert!((c2.p2[i][j] - real.p2[i][j]).abs() <= 1e-9 * real.p2[i][j].abs().max(1.0));
+                assert!((c2.tr[i][j] - real.tr[i][j]).abs() <= 1e-12);
+            }
+        }
+        let poses = read_poses(&KittiPaths::new(&root).poses("08")).unwrap();
+        write_poses(&d.join("poses.txt"), &poses[..50]).unwrap();
+        let p2 = read_poses(&d.join("poses.txt")).unwrap();
+        assert_eq!(p2.len(), 50);
+        for (a, b) in p2.iter().zip(&poses) {
+            for i in 0..4 {
+                for j in 0..4 {
+                    assert!((a[i][j] - b[i][j]).abs() < 1e-9);
+                }
             }
         }
     }
@@ -135,7 +136,7 @@ fn msg(e: &DataError) -> String {
 fn bad_inputs_give_errors_naming_the_file() {
     let tmp = TempDir::new("kitti-bad");
     let d = tmp.path();
-    let root = kitti_root();
+    let Some(root) = kitti_root() else { return };
     let p = KittiPaths::new(&root);
     let seq = list_sequences(&root).unwrap()[0].clone();
     let frame = list_frames(&root, &seq).unwrap()[0].clone();

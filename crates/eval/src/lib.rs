@@ -1,4 +1,4 @@
-//! occ-eval: the official occupancy evaluation protocols (FACTS.md §2 and §3).
+//! occ-eval: the official occupancy evaluation protocols (docs/evaluation.md).
 //!
 //! - [`Protocol::SemanticKitti`]: SemanticKITTI SSC (`evaluate_completion.py` of semantic-kitti-api).
 //! - [`Protocol::NuScenesOccupancy`]: nuScenes-Occupancy / OpenOccupancy (`occnet.py` + `cm_to_ious`).

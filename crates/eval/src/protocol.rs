@@ -2,7 +2,7 @@
 //!
 //! # Common rules
 //! Predictions and ground truth are per-voxel class indices (`u8`) of the protocol's label space
-//! (SemanticKITTI: learning classes after the lut remap, FACTS.md §1). The confusion matrix is
+//! (SemanticKITTI: learning classes after the lut remap, docs/formats.md §2.4). The confusion matrix is
 //! `conf[pred][gt]`. A voxel is *evaluated* when its ground truth is a class of the protocol
 //! (`gt < num_classes`, which excludes the ignore label 255) and the frame's [`EvalMask`] keeps it.
 //!
@@ -20,9 +20,9 @@
 //! # Per protocol
 //! | | classes | empty | per-class IoU | mIoU | mask |
 //! |---|---|---|---|---|---|
-//! | SemanticKITTI (FACTS §2) | 20 | 0 | `TP/(TP+FP+FN+1e-15)` | mean over 1..=19 (absent classes count 0) | `.invalid == 1` excluded |
-//! | nuScenes-Occupancy (FACTS §3) | 17 | 0 | `tp/(p+g-tp)` (NaN if 0/0) | mean over 1..=16 (NaN if any NaN, as `np.mean`) | none (GT 255 ignored) |
-//! | Occ3D (FACTS §3) | 18 | 17 (free) | `diag/(row+col-diag)` (NaN if 0/0) | nanmean over 0..=16 (free excluded, but it counts in FP/FN) | `mask_camera != 0` kept |
+//! | SemanticKITTI (docs/evaluation.md §2) | 20 | 0 | `TP/(TP+FP+FN+1e-15)` | mean over 1..=19 (absent classes count 0) | `.invalid == 1` excluded |
+//! | nuScenes-Occupancy (docs/evaluation.md §3) | 17 | 0 | `tp/(p+g-tp)` (NaN if 0/0) | mean over 1..=16 (NaN if any NaN, as `np.mean`) | none (GT 255 ignored) |
+//! | Occ3D (docs/evaluation.md §4) | 18 | 17 (free) | `diag/(row+col-diag)` (NaN if 0/0) | nanmean over 0..=16 (free excluded, but it counts in FP/FN) | `mask_camera != 0` kept |
 //!
 //! Geometry metrics (empty class `e`): completion IoU `= Σ_{p≠e,g≠e} conf / (Σconf − conf[e][e])`
 //! (NaN if 0/0, as numpy), precision `= Σ_{p≠e,g≠e} conf / (Σ_{p≠e} conf + ε)`, recall
@@ -37,30 +37,30 @@ use crate::error::EvalError;
 use crate::report::{EvalReport, PerClass};
 use serde::{Deserialize, Serialize};
 
-/// SemanticKITTI learning-class names, index 0..=19 (FACTS.md §1), as defined by the reader.
+/// SemanticKITTI learning-class names, index 0..=19 (docs/formats.md §2.4), as defined by the reader.
 pub const SEMANTIC_KITTI_CLASSES: [&str; 20] = occ_data::formats::semantic_kitti::CLASS_NAMES;
 
 /// SemanticKITTI learning classes of the ground (road, parking, sidewalk, other-ground, terrain);
 /// every other class but empty is an object or a structure standing on it.
 pub const SEMANTIC_KITTI_GROUND_CLASSES: [usize; 5] = [9, 10, 11, 12, 17];
 
-/// nuScenes-Occupancy class names, index 0..=16 (FACTS.md §3; 0 = empty, noise is ignored as 255).
+/// nuScenes-Occupancy class names, index 0..=16 (docs/formats.md §3; 0 = empty, noise is ignored as 255).
 pub const NUSCENES_OCCUPANCY_CLASSES: [&str; 17] =
     occ_data::formats::nuscenes_occupancy::CLASS_NAMES;
 
-/// Occ3D-nuScenes class names, index 0..=17 (FACTS.md §3; 17 = free).
+/// Occ3D-nuScenes class names, index 0..=17 (docs/formats.md §4; 17 = free).
 pub const OCC3D_CLASSES: [&str; 18] = occ_data::formats::occ3d::CLASS_NAMES;
 
 /// Evaluation protocol (dataset).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Protocol {
-    /// SemanticKITTI semantic scene completion (FACTS.md §2).
+    /// SemanticKITTI semantic scene completion (docs/evaluation.md §2).
     #[serde(rename = "semantickitti")]
     SemanticKitti,
-    /// nuScenes-Occupancy / OpenOccupancy (FACTS.md §3).
+    /// nuScenes-Occupancy / OpenOccupancy (docs/evaluation.md §3).
     #[serde(rename = "nuscenes-occupancy")]
     NuScenesOccupancy,
-    /// Occ3D-nuScenes (FACTS.md §3).
+    /// Occ3D-nuScenes (docs/evaluation.md §4).
     #[serde(rename = "occ3d")]
     Occ3d,
 }

@@ -1,5 +1,6 @@
 //! Folder scoring end to end on temporary dataset folders written with the occ-data writers, and
-//! on the real samples in `$SPARSEOCC_REALDATA` (default `<repo>/../shared/realdata`).
+//! on the real samples in `$SPARSEOCC_REALDATA` (an external folder found by `occ_testdata`; the
+//! tests that need it print a skip line without it).
 
 use occ_data::formats::npy::npy_bytes;
 use occ_data::formats::occ3d::{read_labels_npz, write_labels_npz, Occ3dLabels};
@@ -16,23 +17,6 @@ use rand_chacha::ChaCha8Rng;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
-
-fn realdata_dir() -> PathBuf {
-    let dir = match std::env::var_os("SPARSEOCC_REALDATA") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(
-            std::env::var_os("CARGO_MANIFEST_DIR")
-                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
-        )
-        .join("../../../shared/realdata"),
-    };
-    assert!(
-        dir.is_dir(),
-        "real sample folder {} is missing: set SPARSEOCC_REALDATA to the shared realdata folder",
-        dir.display()
-    );
-    dir
-}
 
 /// A fresh temporary folder, removed on drop.
 struct TempDir(PathBuf);
@@ -55,9 +39,10 @@ impl Drop for TempDir {
     }
 }
 
-/// Real `.invalid` masks of the sample (sequence, frame, unpacked mask), found by listing.
-fn real_invalid_masks() -> Vec<(String, String, Vec<u8>)> {
-    let root = realdata_dir().join("semantickitti");
+/// Real `.invalid` masks of the sample (sequence, frame, unpacked mask), found by listing; `None`
+/// (skip reported) without the real-data folder.
+fn real_invalid_masks() -> Option<Vec<(String, String, Vec<u8>)>> {
+    let root = occ_testdata::realdata()?.join("semantickitti");
     let mut out = Vec::new();
     let mut seqs: Vec<_> = std::fs::read_dir(root.join("sequences"))
         .expect("realdata semantickitti/sequences")
@@ -85,7 +70,7 @@ fn real_invalid_masks() -> Vec<(String, String, Vec<u8>)> {
         !out.is_empty(),
         "no .invalid files in the real SemanticKITTI sample"
     );
-    out
+    Some(out)
 }
 
 /// Class grid of a driving-like scene (z fastest) and a noisy prediction of it.
@@ -118,12 +103,14 @@ fn kitti_like_frame(rng: &mut ChaCha8Rng) -> (Vec<u8>, Vec<u8>) {
 
 #[test]
 fn semantic_kitti_folder_end_to_end() {
+    let Some(masks) = real_invalid_masks() else {
+        return;
+    };
     let map = LearningMap::semantic_kitti();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let gt_dir = TempDir::new("kitti-gt");
     let pred_dir = TempDir::new("kitti-pred");
     let gt_paths = KittiPaths::new(&gt_dir.0);
-    let masks = real_invalid_masks();
     // Frames: the real sample's (sequence, frame) ids and invalid masks, plus synthetic labels.
     let mut expected_all = Evaluator::new(Protocol::SemanticKitti);
     let mut expected_by_seq = std::collections::BTreeMap::<String, Evaluator>::new();
@@ -402,7 +389,10 @@ fn occ3d_folder_end_to_end() {
 
 #[test]
 fn real_occ3d_sample_scored_against_itself() {
-    let root = realdata_dir().join("occ3d");
+    let Some(realdata) = occ_testdata::realdata() else {
+        return;
+    };
+    let root = realdata.join("occ3d");
     let mut gts = Vec::new();
     for e in std::fs::read_dir(&root).expect("realdata occ3d folder") {
         let p = e.unwrap().path().join("labels.npz");

@@ -1,5 +1,5 @@
 //! nuScenes-Occupancy (OpenOccupancy) folder scoring on small temporary folders written with
-//! `write_sparse_occupancy`, checked against a hand computation of FACTS.md §3
+//! `write_sparse_occupancy`, checked against a hand computation of docs/evaluation.md §3
 //! (`iou = tp/(p+g-tp)`, mIoU over classes 1..=16, SC IoU on `label != 0`, GT 255 ignored).
 
 use occ_data::formats::nuscenes_occupancy::{write_sparse_occupancy, DIMS};

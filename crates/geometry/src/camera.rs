@@ -1,6 +1,6 @@
 //! Pinhole cameras, the 2D image-augmentation affine, and projection of points / voxel centres.
 //!
-//! Projection chain (FACTS.md §1 "Calibration", SparseOcc `ViewTransformerLSSBEVDepth`):
+//! Projection chain (docs/formats.md §2.7, SparseOcc `ViewTransformerLSSBEVDepth`):
 //! `img_from_lidar = img_aug · img_from_cam · cam_from_lidar`. These are 4x4 matrices acting on
 //! `[x, y, z, 1]`; the result `q = img_from_lidar · p` holds `(Z·u, Z·v, Z)` with `Z` the depth
 //! along the optical axis, so `u = q0/q2`, `v = q1/q2`. `img_aug` is a 2D affine on pixel
@@ -169,7 +169,7 @@ pub fn project_voxel_centers(grid: &VoxelGrid, view: &CameraView) -> VoxelProjec
     VoxelProjection { uvd, in_view }
 }
 
-/// Image-augmentation parameters of the BEVDet/OccFormer/SparseOcc pipeline (FACTS.md §1,
+/// Image-augmentation parameters of the BEVDet/OccFormer/SparseOcc pipeline (docs/formats.md §2.8,
 /// `loading_kitti_imgs.py` `img_transform`), applied in this order to the raw image:
 /// resize by `resize`, crop the window starting at `(crop_x0, crop_y0)` of size
 /// `out_width x out_height` (pixels outside the resized image are zero), optional horizontal
@@ -213,7 +213,7 @@ impl ImageAug {
         }
     }
 
-    /// SparseOcc/OccFormer KITTI test-time transform (FACTS.md §1): `r = out_w / W`,
+    /// SparseOcc/OccFormer KITTI test-time transform (docs/formats.md §2.8): `r = out_w / W`,
     /// resized size `(int(W·r), int(H·r))`, bottom crop `(0, newH - out_h, out_w, newH)`,
     /// no flip, no rotation.
     pub fn kitti_test(
@@ -434,7 +434,7 @@ mod tests {
 
     #[test]
     fn kitti_test_transform_matches_facts() {
-        // FACTS §1: for 1226x370 the crop is rows 2..386.
+        // docs/formats.md §2.8: for 1226x370 the crop is rows 2..386.
         let a = ImageAug::kitti_test(1226, 370, 1280, 384);
         assert_eq!(a.resized_dims(1226, 370), (1280, 386));
         assert_eq!(a.crop_y0, 2.0);

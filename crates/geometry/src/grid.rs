@@ -1,6 +1,6 @@
 //! Axis-aligned voxel grids: index <-> metric position, flat C-order indexing, 3D flips.
 //!
-//! Conventions (DESIGN.md, FACTS.md §1): voxel index `(x, y, z)`, flat arrays in C order
+//! Conventions (docs/formats.md §1): voxel index `(x, y, z)`, flat arrays in C order
 //! `[x][y][z]` with z fastest; voxel `(i, j, k)` covers `[origin + idx·s, origin + (idx+1)·s)` and
 //! its centre is `origin + (idx + 0.5)·s` (MonoScene `vox2world`).
 
@@ -22,17 +22,18 @@ impl VoxelGrid {
     /// SemanticKITTI SSC grid **as the released files are laid out**: 256x256x32, 0.2 m,
     /// origin (0, -25.6, -2.2) in the velodyne frame.
     ///
-    /// The nominal extent (FACTS.md §1, voxelizer config `min extent: [0, -25.6, -2]`) has
+    /// The nominal extent (docs/formats.md §2.2, voxelizer config `min extent: [0, -25.6, -2]`) has
     /// z from -2.0 m, but the SemanticKITTI voxel files (`.bin/.label/.invalid/.occluded`) were
     /// written with an off-by-one in the flat index (jbehley/voxelizer, fixed in commit
     /// e5989b8 "Fix off-by-one error when writing out voxel grid", June 2020, after the data
     /// release): stored element `n+1` holds true voxel `n`. With z fastest this is a +1 shift in
-    /// z, so stored voxel `k >= 1` covers z ∈ [-2.2 + 0.2k, -2.0 + 0.2k). Measured on
-    /// `../shared/realdata`: voxelising the scan with origin z = -2.2 matches the official `.bin`
-    /// with IoU 0.93-0.997 (1.0 when the voxelizer's range filter, label vote and f32 arithmetic
-    /// are emulated), against 0.11-0.23 with z = -2.0. Stored layer `k = 0` never holds the
-    /// [-2.2, -2.0) slab: it holds the top voxel ([4.2, 4.4)) of the previous (x, y) column
-    /// (wrapped), and is empty in practice. See [`VoxelGrid::semantic_kitti_nominal`].
+    /// z, so stored voxel `k >= 1` covers z ∈ [-2.2 + 0.2k, -2.0 + 0.2k). Measured on the real
+    /// sample files (the external `SPARSEOCC_REALDATA` folder): voxelising the scan with origin
+    /// z = -2.2 matches the official `.bin` with IoU 0.93-0.997 (1.0 when the voxelizer's range
+    /// filter, label vote and f32 arithmetic are emulated), against 0.11-0.23 with z = -2.0.
+    /// Stored layer `k = 0` never holds the [-2.2, -2.0) slab: it holds the top voxel ([4.2, 4.4))
+    /// of the previous (x, y) column (wrapped), and is empty in practice. See
+    /// [`VoxelGrid::semantic_kitti_nominal`].
     pub fn semantic_kitti() -> Self {
         VoxelGrid {
             origin_m: [0.0, -25.6, -2.2],
@@ -52,7 +53,7 @@ impl VoxelGrid {
         }
     }
 
-    /// Occ3D-nuScenes: 200x200x16, 0.4 m, range [-40,-40,-1, 40,40,5.4] (FACTS.md §3).
+    /// Occ3D-nuScenes: 200x200x16, 0.4 m, range [-40,-40,-1, 40,40,5.4] (docs/formats.md §4).
     pub fn occ3d_nuscenes() -> Self {
         VoxelGrid {
             origin_m: [-40.0, -40.0, -1.0],
@@ -62,7 +63,7 @@ impl VoxelGrid {
     }
 
     /// nuScenes-Occupancy (OpenOccupancy): 512x512x40, 0.2 m, range [-51.2,-51.2,-5, 51.2,51.2,3]
-    /// (FACTS.md §3).
+    /// (docs/formats.md §3).
     pub fn nuscenes_occupancy() -> Self {
         VoxelGrid {
             origin_m: [-51.2, -51.2, -5.0],
@@ -135,7 +136,7 @@ impl VoxelGrid {
         }
     }
 
-    /// Metric transform of the 3D flip augmentation (SparseOcc `loading_kitti_occ.py`, FACTS.md §1):
+    /// Metric transform of the 3D flip augmentation (SparseOcc `loading_kitti_occ.py`, docs/formats.md §2.9):
     /// `new_from_old` mirrors each flagged axis about the grid centre, `p' = 2c - p`.
     ///
     /// Mirroring about the grid centre is exactly what reversing the label array along that axis

@@ -1,7 +1,7 @@
 //! occ-geometry: cameras, voxel grids, projections, augmentation transforms, and the
 //! scene-completion-field (SCF) geometry of SparseOcc++ (paper Sec. 4.2, Algorithms 1 and 2).
 //!
-//! Conventions (DESIGN.md): voxel index `(x, y, z)`, flat arrays in C order with z fastest,
+//! Conventions (docs/formats.md §1): voxel index `(x, y, z)`, flat arrays in C order with z fastest,
 //! transforms named `b_from_a`, units in names.
 
 pub mod camera;

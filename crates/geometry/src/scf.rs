@@ -101,7 +101,8 @@ pub enum ScfError {
 }
 
 /// Maximum SCF distances (paper Sec. 4.2 "Discretized Learning"; the chosen setting of the
-/// compact-completion ablation is `(10, 3)`, see DESIGN.md). Each must be `<= 127` (int8 output).
+/// compact-completion ablation is `(10, 3)`, see docs/paper_notes.md §2). Each must be `<= 127`
+/// (int8 output).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct ScfConfig {
     /// `s_max^{X-Y}`: largest planar distance; planar bins are `2·s_max_planar + 1`.

@@ -1,32 +1,26 @@
 //! SCF ground truth (Algorithm 2) and propagation (Algorithm 1) against the PyTorch reference
-//! fixtures in `$SPARSEOCC_FIXTURES/reference` (default `<repo>/../shared/fixtures`). Files are found
-//! through `reference/manifest.json` by their role (prefix), never by a hard-coded list of cases.
+//! fixtures in `$SPARSEOCC_FIXTURES/reference` (an external folder, found by `occ_testdata`; without it
+//! these tests print a skip line). Files are found through `reference/manifest.json` by their role
+//! (prefix), never by a hard-coded list of cases.
 
 use occ_geometry::scf::{
     propagate, propagation_to_dense, scf_ground_truth, scf_planar, scf_vertical, ScfConfig,
 };
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-fn fixtures_dir() -> PathBuf {
-    let dir = match std::env::var_os("SPARSEOCC_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(
-            std::env::var_os("CARGO_MANIFEST_DIR")
-                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
-        )
-        .join("../../../shared/fixtures"),
-    };
+/// `$SPARSEOCC_FIXTURES/reference`, or `None` (skip reported) without the fixtures folder.
+fn reference_dir() -> Option<PathBuf> {
+    let dir = occ_testdata::fixtures()?.join("reference");
     assert!(
-        dir.join("reference/manifest.json").is_file(),
-        "fixtures folder {} (reference/manifest.json) is missing: set SPARSEOCC_FIXTURES to the shared fixtures folder",
+        dir.join("manifest.json").is_file(),
+        "{} has no manifest.json",
         dir.display()
     );
-    dir
+    Some(dir)
 }
 
 /// Manifest entries: file name -> (shape, dtype, description).
-fn manifest() -> Vec<(String, Vec<usize>, String, String)> {
-    let dir = fixtures_dir().join("reference");
+fn manifest(dir: &Path) -> Vec<(String, Vec<usize>, String, String)> {
     let text = std::fs::read_to_string(dir.join("manifest.json")).expect("read manifest.json");
     let v: serde_json::Value = serde_json::from_str(&text).expect("parse manifest.json");
     let files = v["files"]
@@ -49,8 +43,8 @@ fn manifest() -> Vec<(String, Vec<usize>, String, String)> {
 }
 
 /// The single manifest file whose name starts with `prefix`, its shape, and its description.
-fn find(prefix: &str) -> (PathBuf, Vec<usize>, String) {
-    let hits: Vec<_> = manifest()
+fn find(dir: &Path, prefix: &str) -> (PathBuf, Vec<usize>, String) {
+    let hits: Vec<_> = manifest(dir)
         .into_iter()
         .filter(|(n, ..)| n.starts_with(prefix))
         .collect();
@@ -61,7 +55,7 @@ fn find(prefix: &str) -> (PathBuf, Vec<usize>, String) {
         hits.len()
     );
     let (name, shape, _, what) = hits.into_iter().next().unwrap();
-    (fixtures_dir().join("reference").join(name), shape, what)
+    (dir.join(name), shape, what)
 }
 
 fn load<T: npyz::Deserialize>(path: &PathBuf) -> (Vec<T>, Vec<usize>) {
@@ -88,11 +82,12 @@ fn dims3(shape: &[usize]) -> [usize; 3] {
 
 #[test]
 fn scf_ground_truth_matches_reference_exactly() {
-    let (occ_path, _, _) = find("scf_occupancy");
+    let Some(dir) = reference_dir() else { return };
+    let (occ_path, _, _) = find(&dir, "scf_occupancy");
     let (occ, shape) = load::<u8>(&occ_path);
     let dims = dims3(&shape);
-    let (planar_path, _, planar_what) = find("scf_gt_planar");
-    let (vertical_path, _, vertical_what) = find("scf_gt_vertical");
+    let (planar_path, _, planar_what) = find(&dir, "scf_gt_planar");
+    let (vertical_path, _, vertical_what) = find(&dir, "scf_gt_vertical");
     let (want_planar, ps) = load::<i8>(&planar_path);
     let (want_vertical, vs) = load::<i8>(&vertical_path);
     assert_eq!(dims3(&ps), dims);
@@ -139,14 +134,15 @@ fn scf_ground_truth_matches_reference_exactly() {
 
 #[test]
 fn propagation_matches_reference_exactly() {
-    let (anchor_path, _, _) = find("prop_anchors");
+    let Some(dir) = reference_dir() else { return };
+    let (anchor_path, _, _) = find(&dir, "prop_anchors");
     let (flat, ashape) = load::<i32>(&anchor_path);
     assert_eq!(ashape.len(), 2);
     assert_eq!(ashape[1], 3);
     let anchors: Vec<[i32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    let (sp, _) = load::<i32>(&find("prop_s_planar").0);
-    let (sv, _) = load::<i32>(&find("prop_s_vertical").0);
-    let (want, rshape) = load::<u8>(&find("prop_result").0);
+    let (sp, _) = load::<i32>(&find(&dir, "prop_s_planar").0);
+    let (sv, _) = load::<i32>(&find(&dir, "prop_s_vertical").0);
+    let (want, rshape) = load::<u8>(&find(&dir, "prop_result").0);
     let dims = dims3(&rshape);
     let prop = propagate(&anchors, &sp, &sv, dims).unwrap();
     // New voxels are sorted, unique and disjoint from the anchors.

@@ -1,4 +1,4 @@
-//! ResNet-18/34/50 image backbone with the torchvision module layout (DESIGN.md "backbone"; paper
+//! ResNet-18/34/50 image backbone with the torchvision module layout (docs/reference_models.md §1; paper
 //! Sec. 5.1 uses ResNet-50 / ResNet-101 image backbones, SemanticKITTI runs use a ResNet of this family).
 //!
 //! Layout, exactly as torchvision's `resnet18/34/50` (the "v1.5" variant for ResNet-50, i.e. the

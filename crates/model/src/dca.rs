@@ -649,20 +649,6 @@ mod tests {
     use super::*;
     type B64 = burn::backend::NdArray<f64>;
 
-    fn fixtures_dir() -> std::path::PathBuf {
-        let dir = std::env::var_os("SPARSEOCC_FIXTURES")
-            .map(std::path::PathBuf::from)
-            .unwrap_or_else(|| {
-                std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures")
-            });
-        assert!(
-            dir.is_dir(),
-            "fixtures folder {} not found: set SPARSEOCC_FIXTURES",
-            dir.display()
-        );
-        dir
-    }
-
     /// Initial offsets: Deformable DETR's ring (head `m` along angle `2πm/M`, normalised so the larger
     /// component is 1, point `j` at `j + 1`), times `offset_init_scale`; a negative scale is refused.
     #[test]
@@ -711,11 +697,14 @@ mod tests {
         (shape, n.into_vec().unwrap())
     }
 
-    /// The sampling DCA relies on (bilinear, zero padding, align_corners = false) against the shared
-    /// PyTorch `grid_sample` fixture.
+    /// The sampling DCA relies on (bilinear, zero padding, align_corners = false) against the
+    /// PyTorch `grid_sample` fixture of the external fixtures folder (skipped with a note without it).
     #[test]
     fn bilinear_sample_matches_fixture() {
-        let dir = fixtures_dir().join("reference");
+        let Some(fixtures) = occ_testdata::fixtures() else {
+            return;
+        };
+        let dir = fixtures.join("reference");
         let device = Default::default();
         let (fs, f) = npy(&dir.join("grid_sample_features.npy"));
         let (gs, g) = npy(&dir.join("grid_sample_grid.npy"));

@@ -1,5 +1,5 @@
-//! Dense baseline: the paper's "all modules disabled" ablation row (DESIGN.md): LSS into a DENSE voxel
-//! grid → a dense 3D convolutional encoder (`Conv3d 3x3x3`, zero padding 1, + BatchNorm + ReLU per
+//! Dense baseline: the paper's "all modules disabled" ablation row (docs/paper_notes.md §5): LSS
+//! into a DENSE voxel grid → a dense 3D convolutional encoder (`Conv3d 3x3x3`, zero padding 1, + BatchNorm + ReLU per
 //! layer) → a linear `1x1x1` head over every voxel. It exists to measure the sparse models against.
 //!
 //! The dense convolutions run on the gather-GEMM engine of `occ-sparse` with EVERY voxel of the grid

@@ -1,4 +1,4 @@
-//! Feature pyramid network neck and the complete image encoder (ResNet + FPN), DESIGN.md "neck":
+//! Feature pyramid network neck and the complete image encoder (ResNet + FPN; docs/reference_models.md §1):
 //! images → multi-scale 2D features for LSS (SparseOcc, paper Sec. 3) and deformable cross attention
 //! (SparseOcc++, paper Sec. 4).
 //!

@@ -1,5 +1,5 @@
 //! Hungarian (Kuhn-Munkres) assignment for the bipartite matching of the sparse transformer head
-//! (paper Sec. 3.5, FACTS.md §5 "Matching": the official code calls scipy's
+//! (paper Sec. 3.5, docs/reference_models.md §1 "matching": the official code calls scipy's
 //! `linear_sum_assignment`).
 //!
 //! Shortest-augmenting-path formulation with row/column potentials, O(n²·m) for an `n x m` cost

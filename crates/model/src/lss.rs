@@ -1,4 +1,4 @@
-//! Lift-Splat-Shoot view transform (paper Sec. 3.1; FACTS.md §5 "LSS", §4 "Depth loss").
+//! Lift-Splat-Shoot view transform (paper Sec. 3.1; docs/reference_models.md §1 "view transform", docs/losses.md §6).
 //!
 //! Image features `[B*V, C_in, h, w]` at `stride` input pixels go through a depth net that predicts,
 //! per feature pixel, a distribution over `D` depth bins and `C` context channels. Every
@@ -18,14 +18,14 @@
 //!   degenerate).
 //! - **Frustum pixels.** Feature pixel `(i, j)` at stride `s` is placed at the centre of the `s x s`
 //!   input patch it summarises: `u = j·s + (s-1)/2`, `v = i·s + (s-1)/2` (pixel centres at integer
-//!   coordinates, as the projection `u = round(...)` of FACTS.md §1 assumes). BEVDepth uses
+//!   coordinates, as the projection `u = round(...)` of docs/formats.md §2.7 assumes). BEVDepth uses
 //!   `linspace(0, W-1, w)`, which differs by a fraction of a stride.
 //! - **Depth bins** from `dbound = [min, max, step]`: `d_k = min + k·step`, `k < D = ceil((max-min)/step)`
 //!   (`torch.arange`, D = 112 for `[2, 58, 0.5]`).
 //! - **Depth targets**: LiDAR points projected with `img_from_lidar`, pixel `round(u), round(v)` inside
 //!   the input image, the minimum depth per `s x s` patch; target bin
 //!   `k = floor((d - (min - step/2)) / step)` (the bin whose centre `d_k` is nearest), no target when
-//!   `k ∉ [0, D)`. FACTS.md §4 quotes `floor((d - (2.0 - 0.25))/0.5)` followed by dropping one-hot
+//!   `k ∉ [0, D)`. The official code (docs/losses.md §6) uses `floor((d - (2.0 - 0.25))/0.5)` followed by dropping one-hot
 //!   column 0, which is one bin lower; here the target bin is the bin where the frustum point sits.
 //! - **Non-empty voxels**: the sites hit by at least one frustum point (a host-side count, so a
 //!   feature that is exactly zero by chance still counts), as the paper's "gathering non-empty voxels".
@@ -625,7 +625,7 @@ pub fn depth_targets<B: Backend>(
     ))
 }
 
-/// Depth loss (FACTS.md §4): binary cross-entropy between `softmax(depth_logits)` and the one-hot
+/// Depth loss (docs/losses.md §6): binary cross-entropy between `softmax(depth_logits)` and the one-hot
 /// target bin, summed over the bins of the foreground pixels (target >= 0) and divided by
 /// `max(1, #foreground)`. Probabilities are clamped to `[1e-6, 1 - 1e-6]` before the logarithms.
 ///

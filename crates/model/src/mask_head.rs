@@ -1,5 +1,5 @@
-//! Sparse transformer head (paper Sec. 3.4; official `SparseMask2FormerOccHead`, FACTS.md §5 "Head",
-//! "Targets", "Matching", "Losses").
+//! Sparse transformer head (paper Sec. 3.4; official `SparseMask2FormerOccHead`; docs/reference_models.md §1,
+//! rows "head", "targets", "matching", "losses").
 //!
 //! 1. **Coarse non-empty filter.** A small MLP on the *detached* mask features (official
 //!    `occ_pred_conv`: Linear C→C/2, GroupNorm, ReLU, Linear → `num_classes`) gives coarse semantic
@@ -669,7 +669,7 @@ impl<B: Backend> MaskHead<B> {
     }
 }
 
-/// Weights and options of the set-prediction losses (FACTS.md §5 "Losses").
+/// Weights and options of the set-prediction losses (docs/losses.md §5).
 #[derive(Clone, Debug)]
 pub struct SetLossWeights {
     /// Class cross-entropy weight (2.0).

@@ -1,4 +1,4 @@
-//! Sparse latent propagator (paper Sec. 3.2, "SparseLatentDiffuser" in the official code; FACTS.md §5).
+//! Sparse latent propagator (paper Sec. 3.2, "SparseLatentDiffuser" in the official code; docs/reference_models.md §1).
 //!
 //! `L` stages; stage `l` works at stride `2^l` of the LSS grid and is
 //! 1. a **sparse completion block**: regular (dilating) sparse convolutions, each followed by

@@ -48,7 +48,7 @@ pub struct ScfHeadConfig {
     /// `s_max^{X-Y}` (also the range of the scalar ablation).
     #[config(default = 10)]
     pub s_max_planar: u32,
-    /// `s_max^{Z}`. Paper Sec. 5.4 says 5; its chosen ablation row is (10, 3) (DESIGN.md).
+    /// `s_max^{Z}`. Paper Sec. 5.4 says 5; its chosen ablation row is (10, 3) (docs/paper_notes.md §2).
     #[config(default = 3)]
     pub s_max_vertical: u32,
     /// Decomposed or scalar.

@@ -4,7 +4,7 @@
 //! The image encoder is outside: [`SparseOcc::forward`] takes ONE feature map `[B*V, C, h, w]`
 //! (row `b*V + v`) at `stride` input pixels. Predictions live on the LSS grid (`full_dims /
 //! lss_downsample`, 1/2 resolution by default) and are returned as a [`ModelOutput`] with
-//! `upsample = lss_downsample`; the loss terms come from [`SoOutput::losses`] (FACTS.md §5 "Losses").
+//! `upsample = lss_downsample`; the loss terms come from [`SoOutput::losses`] (docs/losses.md §7).
 //!
 //! Label grid for the losses: the full-resolution target downsampled with the official in-network
 //! rule ([`downsample_labels_mode`]) to the prediction grid; the mask targets and the coarse loss are
@@ -23,7 +23,7 @@ use burn::tensor::activation::log_softmax;
 use burn::tensor::TensorData;
 use occ_sparse::{Coord, SparseConvBackend};
 
-/// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (FACTS.md §5);
+/// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (docs/reference_models.md §1);
 /// CPU tests shrink the channels, queries and layers.
 #[derive(Config, Debug)]
 pub struct SparseOccConfig {
@@ -355,7 +355,7 @@ pub(crate) fn targets_at<B: Backend>(
 }
 
 impl<B: Backend> SoOutput<B> {
-    /// Loss terms (FACTS.md §5): for every head prediction `mask_cls` (weight 2, no-object 0.1),
+    /// Loss terms (docs/losses.md §5 and §7): for every head prediction `mask_cls` (weight 2, no-object 0.1),
     /// `mask_bce` and `mask_dice` (weight 5) — prefixed `d{i}.` for the auxiliary ones —, `depth`
     /// (BCE, when the batch has LiDAR points) and `coarse_ce` (weighted CE, ignore 255, on the coarse
     /// logits of the level-0 sites).
@@ -405,7 +405,7 @@ impl<B: Backend> SoOutput<B> {
     }
 }
 
-/// The official in-network label downsampling (SparseOcc `loss_voxel`, FACTS.md §1): per `r³` block,
+/// The official in-network label downsampling (SparseOcc `loss_voxel`, docs/formats.md §2.6): per `r³` block,
 /// all-zero → 0; otherwise the mode of the block where each 0 is replaced by a unique negative number
 /// and a negative mode becomes 255 — i.e. the most frequent non-zero label (255 counts as a label),
 /// ties to the smallest value (`torch.mode`), and when no label occurs twice while the block contains a

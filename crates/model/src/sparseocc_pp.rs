@@ -81,7 +81,7 @@ pub struct SparseOccPPConfig {
     /// `s_max^{X-Y}` (Sec. 5.4: 10).
     #[config(default = 10)]
     pub s_max_planar: u32,
-    /// `s_max^{Z}` (Sec. 5.4 says 5, the chosen ablation row (10, 3); DESIGN.md picks 3).
+    /// `s_max^{Z}` (Sec. 5.4 says 5, the chosen ablation row (10, 3); docs/paper_notes.md §2 picks 3).
     #[config(default = 3)]
     pub s_max_vertical: u32,
     /// SCF decomposition (paper default decomposed).
@@ -120,7 +120,7 @@ pub struct SparseOccPPConfig {
     /// Depth bins `[d_min, d_max, step]` (metres) of the depth gate.
     #[config(default = "[2.0, 58.0, 1.0]")]
     pub depth_dbound: [f64; 3],
-    /// Weight of the depth loss of the depth gate (FACTS.md §4 depth BCE; applied when the batch
+    /// Weight of the depth loss of the depth gate (docs/losses.md §6 depth BCE; applied when the batch
     /// carries LiDAR points).
     #[config(default = 1.0)]
     pub depth_loss_weight: f64,
@@ -449,7 +449,7 @@ pub struct PPTargets {
     pub scf: Option<ScfTargets>,
 }
 
-/// Label of a `ds³` block by the MonoScene / SSC downsampling rule (FACTS.md §1 `_downsample_label`):
+/// Label of a `ds³` block by the MonoScene / SSC downsampling rule (docs/formats.md §2.6, `_downsample_label`):
 /// if empty (0) and ignore (255) voxels are more than 95 % of the block, the block is 0 when there are
 /// more 0s than 255s and 255 otherwise (ties → 255); else the most frequent label in `1..=254` (ties →
 /// the smaller id). `labels` yields the block's labels.
@@ -593,7 +593,7 @@ pub fn pp_targets<B: Backend>(
 }
 
 impl<B: Backend> PPOutput<B> {
-    /// The training objective of paper Sec. 4.4, `L = L_occ + L_anchor + L_scf` (DESIGN.md "Losses"):
+    /// The training objective of paper Sec. 4.4, `L = L_occ + L_anchor + L_scf` (docs/losses.md §7):
     /// - `occ.*`: [`occ_loss`] (weighted CE + Lovasz-softmax + geo_scal + sem_scal) on the final voxels
     ///   against their MonoScene-rule labels;
     /// - `anchor{l}.*`: the same four terms on every candidate of anchor level `l`, times

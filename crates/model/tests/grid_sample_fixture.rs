@@ -1,6 +1,7 @@
 //! `sample::bilinear_sample` (burn's `grid_sample_2d`, bilinear, zeros padding,
 //! align_corners=false) against the PyTorch fixture `grid_sample_*` (files found through
-//! `$SPARSEOCC_FIXTURES/reference/manifest.json`): output, gradient w.r.t. the features and
+//! `$SPARSEOCC_FIXTURES/reference/manifest.json`, an external folder: without it those tests print a
+//! skip line): output, gradient w.r.t. the features and
 //! w.r.t. the grid for a given upstream gradient. Also against a host brute force on random grids
 //! that reach outside the map, on the autodiff and the plain NdArray backends.
 
@@ -15,26 +16,14 @@ use std::path::{Path, PathBuf};
 type B64 = Autodiff<NdArray<f64>>;
 type B32 = Autodiff<NdArray<f32>>;
 
-fn fixtures_dir() -> PathBuf {
-    let p = match std::env::var_os("SPARSEOCC_FIXTURES") {
-        Some(v) => PathBuf::from(v),
-        None => PathBuf::from(
-            std::env::var_os("CARGO_MANIFEST_DIR")
-                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
-        )
-        .join("../../../shared/fixtures"),
-    };
-    assert!(
-        p.is_dir(),
-        "fixtures folder {} is missing: set SPARSEOCC_FIXTURES or provide ../shared/fixtures next to the repository",
-        p.display()
-    );
-    p
+/// `$SPARSEOCC_FIXTURES/reference`, or `None` (skip reported by `occ_testdata`) without the
+/// external fixtures folder.
+fn reference_dir() -> Option<PathBuf> {
+    Some(occ_testdata::fixtures()?.join("reference"))
 }
 
 /// The manifest entry whose file stem is `stem`, read as f64 with its shape.
-fn fixture(stem: &str) -> (Vec<f64>, Vec<usize>) {
-    let dir = fixtures_dir().join("reference");
+fn fixture(dir: &Path, stem: &str) -> (Vec<f64>, Vec<usize>) {
     let mpath = dir.join("manifest.json");
     let text =
         std::fs::read_to_string(&mpath).unwrap_or_else(|e| panic!("{}: {e}", mpath.display()));
@@ -105,12 +94,13 @@ fn run<B: burn::tensor::backend::AutodiffBackend>(
 }
 
 fn check_fixture<B: burn::tensor::backend::AutodiffBackend>(tol: f64) {
-    let (f, fs) = fixture("grid_sample_features");
-    let (g, gs) = fixture("grid_sample_grid");
-    let (out_ref, os) = fixture("grid_sample_out");
-    let (up, us) = fixture("grid_sample_upstream");
-    let (gf_ref, gfs) = fixture("grid_sample_grad_features");
-    let (gg_ref, ggs) = fixture("grid_sample_grad_grid");
+    let Some(dir) = reference_dir() else { return };
+    let (f, fs) = fixture(&dir, "grid_sample_features");
+    let (g, gs) = fixture(&dir, "grid_sample_grid");
+    let (out_ref, os) = fixture(&dir, "grid_sample_out");
+    let (up, us) = fixture(&dir, "grid_sample_upstream");
+    let (gf_ref, gfs) = fixture(&dir, "grid_sample_grad_features");
+    let (gg_ref, ggs) = fixture(&dir, "grid_sample_grad_grid");
     let (fs, gs) = (shape4(&fs), shape4(&gs));
     assert_eq!(os, us);
     assert_eq!(gfs, fs.to_vec());
@@ -141,9 +131,10 @@ fn grid_sample_fixture_f32() {
 /// The plain (non-autodiff) NdArray kernel gives the same output.
 #[test]
 fn grid_sample_fixture_forward_ndarray() {
-    let (f, fs) = fixture("grid_sample_features");
-    let (g, gs) = fixture("grid_sample_grid");
-    let (out_ref, _) = fixture("grid_sample_out");
+    let Some(dir) = reference_dir() else { return };
+    let (f, fs) = fixture(&dir, "grid_sample_features");
+    let (g, gs) = fixture(&dir, "grid_sample_grid");
+    let (out_ref, _) = fixture(&dir, "grid_sample_out");
     let out = host(bilinear_sample(
         t4::<NdArray<f64>>(&f, shape4(&fs)),
         t4::<NdArray<f64>>(&g, shape4(&gs)),

@@ -1,5 +1,6 @@
 //! Occupancy losses against the PyTorch reference fixtures (`$SPARSEOCC_FIXTURES/reference`, files
-//! discovered through `manifest.json`; values and gradients w.r.t. the logits), plus property checks
+//! discovered through `manifest.json`; values and gradients w.r.t. the logits; an external folder:
+//! without it those tests print a skip line), plus property checks
 //! on seeded random inputs: uniform-weight CE, Lovasz on hard predictions (= 1 − IoU), scal losses
 //! decreasing towards the target, mask BCE / dice by hand, finite-difference gradients.
 
@@ -22,37 +23,21 @@ type B32 = Autodiff<NdArray<f32>>;
 // ------------------------------------------------------------------------------------------------
 // Fixture access.
 
-fn fixtures_dir() -> PathBuf {
-    let p = match std::env::var_os("SPARSEOCC_FIXTURES") {
-        Some(v) => PathBuf::from(v),
-        None => PathBuf::from(
-            std::env::var_os("CARGO_MANIFEST_DIR")
-                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
-        )
-        .join("../../../shared/fixtures"),
-    };
-    assert!(
-        p.is_dir(),
-        "fixtures folder {} is missing: set SPARSEOCC_FIXTURES or provide ../shared/fixtures next to the repository",
-        p.display()
-    );
-    p
-}
-
 struct Manifest {
     dir: PathBuf,
     json: serde_json::Value,
 }
 
 impl Manifest {
-    fn load() -> Self {
-        let dir = fixtures_dir().join("reference");
+    /// `None` (skip reported by `occ_testdata`) without the external fixtures folder.
+    fn load() -> Option<Self> {
+        let dir = occ_testdata::fixtures()?.join("reference");
         let path = dir.join("manifest.json");
         let text =
             std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let json =
             serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        Self { dir, json }
+        Some(Self { dir, json })
     }
 
     /// The file listed in the manifest whose name without extension is `stem`.
@@ -98,8 +83,8 @@ struct LossCase {
     refs: Vec<(String, f64, Vec<f64>)>,
 }
 
-fn load_case() -> LossCase {
-    let m = Manifest::load();
+fn load_case() -> Option<LossCase> {
+    let m = Manifest::load()?;
     let (logits, shape) = read_npy::<f64>(&m.file("loss_logits"));
     assert_eq!(shape.len(), 2, "loss_logits must be [N, C]");
     let (n, c) = (shape[0], shape[1]);
@@ -123,14 +108,14 @@ fn load_case() -> LossCase {
             "manifest loss_values lacks `{want}`"
         );
     }
-    LossCase {
+    Some(LossCase {
         logits,
         n,
         c,
         labels,
         weights,
         refs,
-    }
+    })
 }
 
 /// A tensor of the backend's float element type. The dtype is explicit: burn 0.21 keeps one
@@ -176,7 +161,7 @@ fn rel_err(a: &[f64], b: &[f64]) -> f64 {
 }
 
 fn check_fixture<B: burn::tensor::backend::AutodiffBackend>(tol: f64, grad_tol: f64) {
-    let case = load_case();
+    let Some(case) = load_case() else { return };
     for (name, value, grad_ref) in &case.refs {
         let x = tensor2::<B>(&case.logits, [case.n, case.c]).require_grad();
         let loss = eval_loss(name, x.clone(), &case.labels, &case.weights);
@@ -214,7 +199,7 @@ fn fixture_values_and_gradients_f32() {
 /// `occ_loss` returns the four terms of L_occ with the fixture's values.
 #[test]
 fn occ_loss_terms_match_fixture() {
-    let case = load_case();
+    let Some(case) = load_case() else { return };
     let x = tensor2::<B64>(&case.logits, [case.n, case.c]);
     let terms = occ_loss(x, &case.labels, &case.weights).unwrap();
     let names: Vec<&str> = terms.iter().map(|(n, _)| n.as_str()).collect();
@@ -239,10 +224,10 @@ fn occ_loss_terms_match_fixture() {
     }
 }
 
-/// The fixture's class weights are MonoScene's `1/ln(f+0.001)` (FACTS §1), when it has 20 classes.
+/// The fixture's class weights are MonoScene's `1/ln(f+0.001)` (docs/losses.md §2), when it has 20 classes.
 #[test]
 fn fixture_class_weights_are_monoscene() {
-    let case = load_case();
+    let Some(case) = load_case() else { return };
     if case.c == 20 {
         let ours = monoscene_class_weights();
         assert!(rel_err(&case.weights, &ours) < 1e-6, "{:?}", case.weights);

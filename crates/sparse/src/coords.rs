@@ -1,7 +1,7 @@
 //! Integer voxel coordinates kept on the host, with an open-addressing hash index.
 //!
 //! A coordinate is `(batch, x, y, z)`, in the order of the spatial shape and of the kernel dimensions
-//! (spconv convention, FACTS.md §6). Coordinates live on the host because every structural decision
+//! (spconv convention, docs/reference_models.md §3). Coordinates live on the host because every structural decision
 //! (kernel maps, unions, pruning) is integer work that GPUs gain little on at these sizes; features live on
 //! the burn device.
 

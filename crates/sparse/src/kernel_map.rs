@@ -5,7 +5,7 @@
 //! typed [`KernelMapKey`].
 //!
 //! Offsets are numbered `k = (kx * KY + ky) * KZ + kz`, matching weights `[Cout, kx, ky, kz, Cin]` seen as
-//! `[Cout, K, Cin]`. The arithmetic is cross-correlation, as in spconv and torch (FACTS.md §6):
+//! `[Cout, K, Cin]`. The arithmetic is cross-correlation, as in spconv and torch (docs/reference_models.md §3):
 //! a regular/submanifold convolution connects output `o` to input `i = o * stride - padding + k * dilation`;
 //! a transposed convolution connects input `i` to output `o = i * stride - padding + k * dilation`.
 

@@ -3,7 +3,7 @@
 //! Sparse 3D voxel convolution for [burn](https://burn.dev): the sparse tensors, kernel maps and layers that
 //! sparse occupancy networks are built from (SubMConv3d, SparseConv3d, SparseConvTranspose3d,
 //! SparseInverseConv3d, sparse max pooling, unions, pruning, top-k), with spconv's conventions
-//! (FACTS.md §6): coordinates `(batch, x, y, z)`, weights `[Cout, kx, ky, kz, Cin]`, cross-correlation.
+//! (docs/reference_models.md §3): coordinates `(batch, x, y, z)`, weights `[Cout, kx, ky, kz, Cin]`, cross-correlation.
 //!
 //! Structure follows spconv/torchsparse: integer work (coordinate hashing, kernel maps) on the host in
 //! [`coords`] and [`kernel_map`], feature compute in [`backend`] (portable burn ops, a fast blocked-GEMM

@@ -1,7 +1,7 @@
 //! Normalisation over voxel features `[N, C]`.
 //!
 //! SparseOcc uses BatchNorm1d over the active voxels (statistics over all sites) and GroupNorm applied
-//! to each voxel's channels (FACTS.md §5). Both are burn's own layers applied to the feature rows: a
+//! to each voxel's channels (docs/reference_models.md §1 and §3). Both are burn's own layers applied to the feature rows: a
 //! `[N, C]` tensor is exactly the `[batch, channels]` layout they expect.
 
 use crate::error::Result;

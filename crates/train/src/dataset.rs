@@ -8,7 +8,7 @@
 //!   time) or nuScenes-Occupancy (`nuScenes-Occupancy/scene_<scene token>/occupancy/<lidar token>.npy`,
 //!   grid in the LiDAR frame).
 //!
-//! Images go through the FACTS.md §1 pipeline (random resize/crop/flip/rotate when training, drawn
+//! Images go through the docs/formats.md §2.8 pipeline (random resize/crop/flip/rotate when training, drawn
 //! per camera; resize + bottom crop at test time, which for 1600x900 nuScenes images at 704x256 is
 //! BEVDet's crop), and the augmentation is folded into each camera's `img_from_lidar`, where "lidar"
 //! is always the frame of the label grid.

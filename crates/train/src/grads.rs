@@ -1,6 +1,6 @@
 //! Gradient utilities: clipping by GLOBAL norm (burn clips each tensor separately) and the split of
 //! parameters into a weight-decay group and a no-decay group (biases, norm scales/offsets, embeddings,
-//! queries), as the SparseOcc configs do (FACTS.md §5: decay_mult 0 for norms and embeddings).
+//! queries), as the SparseOcc configs do (docs/reference_models.md §1 "optimiser": no decay for norms and embeddings).
 
 use burn::module::{ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;

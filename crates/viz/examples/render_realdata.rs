@@ -3,8 +3,8 @@
 //! `cargo run --release -p occ-viz --example render_realdata [-- OUT_DIR]`
 //!
 //! For every SemanticKITTI frame under `$SPARSEOCC_REALDATA/semantickitti` (default
-//! `<repo root>/../shared/realdata`) that has `voxels/NNNNNN.bin`, writes to OUT_DIR (default
-//! `/tmp/viz_check`):
+//! `<repo root>/../shared/realdata`, an external folder the repository does not ship) that has
+//! `voxels/NNNNNN.bin`, writes to OUT_DIR (default `/tmp/viz_check`):
 //! - `<seq>_<frame>_voxels.png`: the input occupancy `.bin`, coloured by height;
 //! - `<seq>_<frame>_overlay.png`: the same voxels projected on `image_2` with `P2 · Tr`;
 //! - if the frame's `velodyne` scan and point `labels` exist, the scan voxelised with its
@@ -14,7 +14,7 @@
 //! and for every Occ3D `labels.npz` under `occ3d/*/`: `occ3d_<token>_voxels.png`.
 
 use std::error::Error;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use occ_data::formats::{occ3d, semantic_kitti as sk};
 use occ_data::image::{read_png, write_png};
@@ -25,15 +25,9 @@ use occ_viz::{
     Palette, RenderOptions,
 };
 
-fn realdata_root() -> PathBuf {
-    match std::env::var_os("SPARSEOCC_REALDATA") {
-        Some(p) => PathBuf::from(p),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata"),
-    }
-}
-
 fn main() -> Result<(), Box<dyn Error>> {
-    let root = realdata_root();
+    // The same lookup as the tests (`occ_testdata`), without the skip: here a missing folder is an error.
+    let (root, _) = occ_testdata::Folder::Realdata.path();
     if !root.is_dir() {
         return Err(format!(
             "real data folder {} is missing (set SPARSEOCC_REALDATA)",

@@ -1,7 +1,7 @@
 //! occ-viz: headless visualization of voxel label grids — no display, no GPU, no font files.
 //!
 //! - [`render_voxels`]: perspective render of a dense label grid (shaded cubes, z-buffer,
-//!   legend, title), camera behind and above the ego (DESIGN.md "viz").
+//!   legend, title), camera behind and above the ego.
 //! - [`overlay_on_image`]: drawn voxels projected onto a camera image with `img_from_lidar`,
 //!   depth-sorted and alpha-blended.
 //! - [`side_by_side`]: labelled panels of equal height (image | prediction | ground truth).
@@ -11,7 +11,7 @@
 //!   occupancy-only grids.
 //!
 //! Label grids are `u8` per voxel in C order `[x][y][z]` (z fastest), `grid.num_voxels()` long
-//! (FACTS.md §1). Images are `occ_data::image::RgbImage` (re-exported as [`RgbImage`]); write
+//! (docs/formats.md §1). Images are `occ_data::image::RgbImage` (re-exported as [`RgbImage`]); write
 //! them with `occ_data::image::write_png`. An optional `rerun` streaming feature is not
 //! implemented.
 

@@ -1,12 +1,12 @@
 //! Class palettes (RGB) and the height colour ramp.
 //!
-//! - SemanticKITTI: the 20 learning classes (FACTS.md §1), coloured with the semantic-kitti-api
+//! - SemanticKITTI: the 20 learning classes (docs/formats.md §2.4), coloured with the semantic-kitti-api
 //!   `color_map` of each class's raw id (`learning_map_inv`), converted from the API's BGR order
 //!   to RGB.
-//! - Occ3D-nuScenes: 18 classes, 0 `others` .. 16 `vegetation`, 17 `free` (FACTS.md §3), in the
+//! - Occ3D-nuScenes: 18 classes, 0 `others` .. 16 `vegetation`, 17 `free` (docs/formats.md §4), in the
 //!   colours commonly used by Occ3D/SurroundOcc visualisations.
 //! - nuScenes-Occupancy (OpenOccupancy): 17 classes, 0 `empty` then the 16 nuScenes-lidarseg
-//!   classes 1 `barrier` .. 16 `vegetation` (FACTS.md §3), with the same colours as Occ3D.
+//!   classes 1 `barrier` .. 16 `vegetation` (docs/formats.md §3), with the same colours as Occ3D.
 //!
 //! Class names come from `occ_data::formats::{semantic_kitti, occ3d, nuscenes_occupancy}`.
 

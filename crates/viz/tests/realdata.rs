@@ -1,5 +1,5 @@
-//! occ-viz on the real sample frames in `$SPARSEOCC_REALDATA` (default
-//! `<repo root>/../shared/realdata`): SemanticKITTI input voxels over `image_2` with `P2 · Tr`,
+//! occ-viz on the real sample frames in `$SPARSEOCC_REALDATA` (an external folder found by
+//! `occ_testdata`; without it the tests print a skip line): SemanticKITTI input voxels over `image_2` with `P2 · Tr`,
 //! and the Occ3D sample grid.
 
 use std::path::PathBuf;
@@ -11,23 +11,6 @@ use occ_viz::{
     overlay_on_image, render_voxels, render_voxels_from_view, OverlayOptions, Palette,
     RenderOptions, RgbImage,
 };
-
-fn realdata() -> PathBuf {
-    let root = match std::env::var_os("SPARSEOCC_REALDATA") {
-        Some(p) => PathBuf::from(p),
-        None => std::path::PathBuf::from(
-            std::env::var_os("CARGO_MANIFEST_DIR")
-                .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
-        )
-        .join("../../../shared/realdata"),
-    };
-    assert!(
-        root.is_dir(),
-        "real data folder {} is missing: set SPARSEOCC_REALDATA to the shared realdata folder",
-        root.display()
-    );
-    root
-}
 
 fn px(img: &RgbImage, x: usize, y: usize) -> [u8; 3] {
     let i = (y * img.width + x) * 3;
@@ -47,7 +30,10 @@ fn covered(img: &RgbImage, bg: [u8; 3], x0: usize, x1: usize, y0: usize, y1: usi
 
 #[test]
 fn kitti_input_voxels_project_onto_road_not_sky_and_match_camera_render() {
-    let kitti = realdata().join("semantickitti");
+    let Some(realdata) = occ_testdata::realdata() else {
+        return;
+    };
+    let kitti = realdata.join("semantickitti");
     let grid = VoxelGrid::semantic_kitti();
     let mut checked = 0;
     for seq in sk::list_sequences(&kitti).unwrap() {
@@ -109,7 +95,10 @@ fn kitti_input_voxels_project_onto_road_not_sky_and_match_camera_render() {
 
 #[test]
 fn occ3d_sample_renders_its_classes() {
-    let dir = realdata().join("occ3d");
+    let Some(realdata) = occ_testdata::realdata() else {
+        return;
+    };
+    let dir = realdata.join("occ3d");
     let mut checked = 0;
     let mut entries: Vec<PathBuf> = std::fs::read_dir(&dir)
         .unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()))

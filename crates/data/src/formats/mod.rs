@@ -1,4 +1,4 @@
-//! Readers and writers of the real dataset formats (FACTS.md §1 and §3), plus the small
+//! Readers and writers of the real dataset formats (docs/formats.md), plus the small
 //! `.npy` / file helpers they share.
 
 pub mod io;

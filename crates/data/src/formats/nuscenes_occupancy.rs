@@ -1,5 +1,5 @@
 //! nuScenes-Occupancy (OpenOccupancy) ground truth and the nuScenes v1.0 camera tables
-//! (FACTS.md §3).
+//! (docs/formats.md §3).
 //!
 //! Ground truth: `nuScenes-Occupancy/scene_<scene_token>/occupancy/<lidar_token>.npy`, a sparse
 //! `N x 4` array `[z, y, x, cls]` (or `N x 7` `[z, y, x, vx, vy, vz, cls]`) of occupied voxels of

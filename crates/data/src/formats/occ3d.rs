@@ -1,4 +1,4 @@
-//! Occ3D-nuScenes ground truth `gts/<scene>/<token>/labels.npz` (FACTS.md §3): a zip of three
+//! Occ3D-nuScenes ground truth `gts/<scene>/<token>/labels.npz` (docs/formats.md §4): a zip of three
 //! `.npy` arrays `semantics`, `mask_lidar`, `mask_camera`, each (200, 200, 16) uint8 in `[x][y][z]`
 //! order; class 17 = free. The public sample is DEFLATE-compressed (as `np.savez_compressed`).
 

@@ -1,4 +1,4 @@
-//! SemanticKITTI semantic scene completion data (FACTS.md §1).
+//! SemanticKITTI semantic scene completion data (docs/formats.md §2).
 //!
 //! Layout: `<root>/sequences/XX/{calib.txt, poses.txt, image_2/NNNNNN.png, velodyne/NNNNNN.bin,
 //! labels/NNNNNN.label, voxels/NNNNNN.{bin,label,invalid,occluded}}`; preprocessed labels in
@@ -48,7 +48,7 @@ pub const CLASS_NAMES: [&str; 20] = [
     "pole",
     "traffic-sign",
 ];
-/// Voxel class frequencies (MonoScene `params.py`, SparseOcc `utils/semkitti.py`; FACTS.md §1).
+/// Voxel class frequencies (MonoScene `params.py`, SparseOcc `utils/semkitti.py`; docs/formats.md §2.10).
 pub const CLASS_FREQUENCIES: [f64; 20] = [
     5.41773033e9,
     1.57835390e7,
@@ -243,7 +243,7 @@ pub fn write_prediction(
     Ok(path)
 }
 
-/// Preprocessed SSC target (FACTS.md §1 "Preprocessed labels"): `lut[label]`, then 255 where
+/// Preprocessed SSC target (docs/formats.md §2.5): `lut[label]`, then 255 where
 /// `invalid == 1`.
 pub fn preprocess_labels(
     raw: &[u16],
@@ -444,7 +444,7 @@ impl Calib {
     }
 
     /// The image_2 camera seen from the velodyne: `cam_from_lidar = cam2_from_cam0 · Tr`, so
-    /// that `img_from_lidar = P2 · Tr` exactly (SparseOcc uses the full P2, FACTS.md §1).
+    /// that `img_from_lidar = P2 · Tr` exactly (SparseOcc uses the full P2, docs/formats.md §2.7).
     pub fn camera_view(&self, width: usize, height: usize) -> CameraView {
         CameraView::new(
             self.camera(width, height),
@@ -726,7 +726,7 @@ pub fn nominal_layout_from_released<T: Copy + Default>(stored: &[T]) -> Vec<T> {
 /// Emulate the official input occupancy `voxels/NNNNNN.bin` from the frame's scan and labels:
 /// voxelise on the nominal extent with the voxelizer's filters, occupied where the majority raw
 /// id is > 0, then apply the released off-by-one layout. On the real frames in
-/// `../shared/realdata` this reproduces the `.bin` files bit for bit.
+/// real sample files (the external `SPARSEOCC_REALDATA` folder) this reproduces the `.bin` files bit for bit.
 pub fn emulate_input_occupancy(points: &[[f32; 4]], point_labels: &[u32]) -> Vec<u8> {
     let nominal: Vec<u8> = voxelize_majority_raw(
         points,

@@ -2,7 +2,7 @@
 //! appearance (base colour, LiDAR reflectivity).
 //!
 //! The world stores one *scene class* per voxel (`u8`). Ids 1..=19 are exactly the
-//! SemanticKITTI learning classes (FACTS.md §1 remap table: 1 car … 19 traffic-sign), so
+//! SemanticKITTI learning classes (docs/formats.md §2.4 remap table: 1 car … 19 traffic-sign), so
 //! `LearningMap::to_raw` turns them into raw ids. Ids 20..=24 are object kinds that exist only
 //! as finer nuScenes classes (bus, trailer, construction vehicle, barrier, traffic cone); they map
 //! onto the nearest SemanticKITTI raw id (bus 13, trailer/construction vehicle 20 → learning
@@ -148,7 +148,7 @@ pub fn nuscenes_class(c: u8) -> u8 {
     }
 }
 
-/// Occ3D "free" class id (FACTS.md §3).
+/// Occ3D "free" class id (docs/formats.md §4).
 pub const OCC3D_FREE: u8 = 17;
 
 /// Chromaticity `(r, g)` = `(R/(R+G+B), G/(R+G+B))` of a colour; `None` for black.

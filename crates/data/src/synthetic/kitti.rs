@@ -22,7 +22,7 @@ use std::path::Path;
 pub(crate) const LIDAR_HEIGHT_M: f64 = 1.8;
 /// Camera centre in the LiDAR frame: 0.27 m ahead, 0.15 m below (1.65 m above the road).
 pub(crate) const CAMERA_IN_LIDAR_M: [f64; 3] = [0.27, 0.0, -0.15];
-/// KITTI odometry image size and colour-camera intrinsics (sequence 08, FACTS.md §1).
+/// KITTI odometry image size and colour-camera intrinsics (sequence 08, docs/formats.md §2.7).
 pub(crate) const KITTI_IMAGE: (usize, usize) = (1226, 370);
 const KITTI_FX: f64 = 721.5377;
 const KITTI_CX: f64 = 609.5593;

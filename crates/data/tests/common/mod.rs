@@ -1,53 +1,19 @@
-//! Shared helpers of the occ-data integration tests.
+//! Shared helpers of the occ-data integration tests (the external data folders themselves are found
+//! by `occ_testdata`).
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
 
-fn repo_root() -> PathBuf {
-    // At run time when cargo provides it: a test binary reused from another checkout of the same
-    // sources must look beside this checkout.
-    std::env::var_os("CARGO_MANIFEST_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).to_path_buf())
-        .join("..")
-        .join("..")
-}
-
-/// `$SPARSEOCC_REALDATA` or `<repo>/../shared/realdata`; panics with a clear message if absent.
-pub fn realdata_dir() -> PathBuf {
-    let dir = std::env::var_os("SPARSEOCC_REALDATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("..").join("shared").join("realdata"));
-    assert!(
-        dir.is_dir(),
-        "real sample data folder {} not found: set SPARSEOCC_REALDATA to the shared/realdata folder",
-        dir.display()
-    );
-    dir
-}
-
-/// `$SPARSEOCC_FIXTURES` or `<repo>/../shared/fixtures`; panics with a clear message if absent.
-pub fn fixtures_dir() -> PathBuf {
-    let dir = std::env::var_os("SPARSEOCC_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("..").join("shared").join("fixtures"));
-    assert!(
-        dir.is_dir(),
-        "fixtures folder {} not found: set SPARSEOCC_FIXTURES to the shared/fixtures folder",
-        dir.display()
-    );
-    dir
-}
-
-/// The SemanticKITTI root under the real data (the folder containing `sequences/`).
-pub fn kitti_root() -> PathBuf {
-    let root = realdata_dir().join("semantickitti");
+/// The SemanticKITTI root under the real data (the folder containing `sequences/`), or `None`
+/// (skip reported by `occ_testdata`) when the real-data folder is absent.
+pub fn kitti_root() -> Option<PathBuf> {
+    let root = occ_testdata::realdata()?.join("semantickitti");
     assert!(
         root.join("sequences").is_dir(),
         "{} has no sequences/ folder",
         root.display()
     );
-    root
+    Some(root)
 }
 
 /// A fresh temporary folder removed on drop.

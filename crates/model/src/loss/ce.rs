@@ -1,4 +1,4 @@
-//! Class-weighted cross-entropy with an ignore label (FACTS §4 "CE").
+//! Class-weighted cross-entropy with an ignore label (docs/losses.md §2).
 
 use super::{check_labels, host_tensor, select_rows, valid_rows, zero_loss};
 use crate::error::ModelError;
@@ -6,14 +6,14 @@ use burn::prelude::*;
 use burn::tensor::activation::log_softmax;
 
 /// PyTorch's `CrossEntropyLoss(weight=weights, ignore_index=ignore, reduction='mean')` on logits
-/// `[N, C]` (FACTS §4):
+/// `[N, C]` (docs/losses.md §2):
 ///
 /// `loss = Σ_{i: y_i != ignore} w[y_i] · (−log_softmax(x_i)[y_i]) / Σ_{i: y_i != ignore} w[y_i]`.
 ///
 /// `labels` has one class index per row (`< C`) or `ignore`; `weights` has `C` entries. When no row
 /// is left, or the weights of the remaining rows sum to 0, the loss is 0 (PyTorch returns NaN).
 /// The same formula with `avg_factor = Σ w[labels]` is the query-classification CE of the SparseOcc
-/// head (FACTS §5).
+/// head (docs/losses.md §2).
 pub fn cross_entropy_weighted<B: Backend>(
     logits: Tensor<B, 2>,
     labels: &[u8],

@@ -1,4 +1,4 @@
-//! Depth supervision of the LSS view transformer (FACTS §4 "Depth loss", SparseOcc
+//! Depth supervision of the LSS view transformer (docs/losses.md §6, SparseOcc
 //! `image2bev/ViewTransformerLSSVoxel.py`): per-patch minimum lidar depth, metric depth → bin index,
 //! and the BCE between the predicted depth distribution and the one-hot bin.
 
@@ -7,7 +7,7 @@ use crate::error::ModelError;
 use burn::prelude::*;
 
 /// How a metric depth `d` becomes a bin index, with `k = floor((d − (d_min − step/2)) / step)`
-/// (FACTS §4).
+/// (docs/losses.md §6).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum DepthBinRule {
     /// Bin `k`, valid for `0 <= k < D`: the bin whose center `d_min + k·step` is nearest to `d`
@@ -81,7 +81,7 @@ impl DepthBins {
 }
 
 /// Minimum non-zero depth in each `ds × ds` patch of a depth map `[h, w]` (row-major), 0 where a
-/// patch has no non-zero depth (FACTS §4 step 1; SparseOcc replaces zeros by 1e5 before the min,
+/// patch has no non-zero depth (docs/losses.md §6 step 1; SparseOcc replaces zeros by 1e5 before the min,
 /// which the bin rules then reject, the same as 0 here). Returns `[h/ds, w/ds]` row-major; `h` and
 /// `w` must be multiples of `ds`.
 pub fn downsample_depth_min(
@@ -111,7 +111,7 @@ pub fn downsample_depth_min(
     Ok(out)
 }
 
-/// Depth BCE (FACTS §4 step 4): `probs` `[N, D]` is the predicted (softmaxed) depth distribution
+/// Depth BCE (docs/losses.md §6 step 3): `probs` `[N, D]` is the predicted (softmaxed) depth distribution
 /// per pixel, `bins[i]` the target bin of pixel `i` (`None` = no supervision). Over the foreground
 /// rows (a valid bin), `Σ_rows Σ_d BCE(p_d, onehot_d) / max(1, #fg)` with
 /// `BCE(p, t) = −t·ln p − (1−t)·ln(1−p)` and the logs capped at −100 as in PyTorch.

@@ -1,4 +1,4 @@
-//! Lovasz-softmax loss (Berman et al. 2018; FACTS §4), `classes='present'`, `per_image=False`.
+//! Lovasz-softmax loss (Berman et al. 2018; docs/losses.md §3), `classes='present'`, `per_image=False`.
 
 use super::{check_labels, host_tensor, select_rows, to_host, valid_rows, zero_loss};
 use crate::error::ModelError;
@@ -30,7 +30,7 @@ pub fn lovasz_grad(fg_sorted: &[f64]) -> Vec<f64> {
 }
 
 /// Lovasz-softmax on class probabilities `probs` `[N, C]` (softmax output) with labels (one class
-/// index `< C` or `ignore` per row); FACTS §4.
+/// index `< C` or `ignore` per row); docs/losses.md §3.
 ///
 /// For every class `c` present among the non-ignored labels: `fg = (y == c)`,
 /// `e = |fg − p_c|`, sorted by decreasing `e`; `loss_c = e_sorted · lovasz_grad(fg_sorted)`.

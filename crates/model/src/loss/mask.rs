@@ -1,4 +1,4 @@
-//! Mask losses of the SparseOcc transformer head (FACTS §5, Mask2Former `sigmoid_ce_loss` and
+//! Mask losses of the SparseOcc transformer head (docs/losses.md §5, Mask2Former `sigmoid_ce_loss` and
 //! `dice_loss`): mask logits `[Q, P]` (Q matched queries, P sampled points) against binary (or soft)
 //! targets `[Q, P]` in `[0, 1]`.
 

@@ -1,18 +1,18 @@
-//! Training losses of the occupancy models (FACTS.md §4 and §5), as differentiable burn graphs.
+//! Training losses of the occupancy models (docs/losses.md), as differentiable burn graphs.
 //!
 //! - [`ce`]: class-weighted cross-entropy with an ignore label (PyTorch `CrossEntropyLoss(weight,
 //!   ignore_index=255, reduction='mean')`).
 //! - [`lovasz`]: Lovasz-softmax (Berman et al. 2018), `classes='present'`, `per_image=False`.
 //! - [`scal`]: MonoScene's `geo_scal_loss` and `sem_scal_loss`.
 //! - [`mask`]: binary cross-entropy with logits and the naive dice loss for mask predictions
-//!   (SparseOcc transformer head, FACTS §5).
+//!   (SparseOcc transformer head, docs/losses.md §5).
 //! - [`depth`]: the LSS depth-distribution BCE and the metric-depth → bin-index conversion.
 //!
 //! Conventions shared by the voxel losses: predictions are rows `[N, C]` (one row per voxel, class 0 =
 //! empty), labels are a host slice `&[u8]` with one class index per row and `ignore` (255) for
 //! unlabelled voxels. Labels stay on the host because every loss needs host-side bookkeeping anyway
 //! (present classes, counts, sort orders for Lovasz); ground-truth grids are `u8` in this project
-//! (FACTS §1). The result of every loss is a one-element tensor `[1]` that is part of the autodiff
+//! (docs/formats.md §1). The result of every loss is a one-element tensor `[1]` that is part of the autodiff
 //! graph of the prediction, also when nothing is left to supervise (then it is `0 * sum(pred)`).
 //!
 //! Precision note (burn 0.21): the autodiff backward of `div_scalar` multiplies by `1 / rhs`
@@ -38,13 +38,13 @@ use crate::error::ModelError;
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
 
-/// Label of voxels that are not supervised (FACTS §1: invalid / unknown voxels).
+/// Label of voxels that are not supervised (docs/formats.md §2.4-§2.5: invalid / unknown voxels).
 pub const IGNORE_LABEL: u8 = 255;
 
-/// Class index of empty space (FACTS §1).
+/// Class index of empty space (docs/formats.md §1).
 pub const EMPTY_CLASS: u8 = 0;
 
-/// SemanticKITTI voxel class frequencies, in class order empty, car, …, traffic-sign (FACTS §1,
+/// SemanticKITTI voxel class frequencies, in class order empty, car, …, traffic-sign (docs/formats.md §2.10,
 /// MonoScene `data/semantic_kitti/params.py`).
 pub const SEMANTIC_KITTI_CLASS_FREQUENCIES: [f64; 20] = [
     5.41773033e9,
@@ -70,24 +70,24 @@ pub const SEMANTIC_KITTI_CLASS_FREQUENCIES: [f64; 20] = [
 ];
 
 /// MonoScene cross-entropy class weights `1 / ln(f + 0.001)` from
-/// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (FACTS §1; `0.0446` for empty … `0.0786` for traffic-sign).
+/// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (docs/losses.md §2; `0.0446` for empty … `0.0786` for traffic-sign).
 pub fn monoscene_class_weights() -> [f64; 20] {
     SEMANTIC_KITTI_CLASS_FREQUENCIES.map(|f| 1.0 / (f + 0.001).ln())
 }
 
 /// SparseOcc class weights `(1 / ln f) / (1 / ln f_empty)` from
-/// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (FACTS §1; `1.0` for empty … `1.7621` for traffic-sign).
+/// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (docs/losses.md §2; `1.0` for empty … `1.7621` for traffic-sign).
 /// Used by the coarse voxel CE of the SparseOcc head.
 pub fn sparseocc_class_weights() -> [f64; 20] {
     let f0 = SEMANTIC_KITTI_CLASS_FREQUENCIES[0].ln();
     SEMANTIC_KITTI_CLASS_FREQUENCIES.map(|f| f0 / f.ln())
 }
 
-/// Weight of the "no object" class of the SparseOcc mask-classification CE (FACTS §1).
+/// Weight of the "no object" class of the SparseOcc mask-classification CE (docs/losses.md §2).
 pub const NO_OBJECT_WEIGHT: f64 = 0.1;
 
 /// [`sparseocc_class_weights`] followed by [`NO_OBJECT_WEIGHT`]: the 21 weights of the query
-/// classification CE of the SparseOcc transformer head (FACTS §5).
+/// classification CE of the SparseOcc transformer head (docs/losses.md §2).
 pub fn sparseocc_query_class_weights() -> [f64; 21] {
     let w = sparseocc_class_weights();
     let mut out = [NO_OBJECT_WEIGHT; 21];
@@ -114,7 +114,7 @@ pub struct OccLossWeights {
 }
 
 /// The occupancy loss `L_occ = L_ce + L_lovasz + L_geo_scal + L_sem_scal` (paper Eq. `loss_occ`,
-/// FACTS §4) with unit weights, on voxel logits `[N, C]` and labels (class 0 empty, 255 ignored).
+/// docs/losses.md §2-§4) with unit weights, on voxel logits `[N, C]` and labels (class 0 empty, 255 ignored).
 /// Returns the named terms `ce`, `lovasz`, `geo_scal`, `sem_scal` (sum them for the total).
 pub fn occ_loss<B: Backend>(
     logits: Tensor<B, 2>,
@@ -244,7 +244,7 @@ pub(crate) fn neg_log_capped<B: Backend, const D: usize>(x: Tensor<B, D>) -> Ten
 mod tests {
     use super::*;
 
-    /// FACTS §1 lists the weights to 4 decimals. Four MonoScene entries there (classes 7, 9, 14,
+    /// The published weight lists (MonoScene, SparseOcc) have 4 decimals. Four MonoScene entries there (classes 7, 9, 14,
     /// 18: 0.079645, 0.055749, 0.060348, 0.071649) were rounded twice (to 5, then 4 decimals), so
     /// they are 0.5e-4..0.6e-4 above the formula; the SparseOcc list is rounded once.
     #[test]

@@ -1,4 +1,4 @@
-//! Scene-class affinity losses of MonoScene (`loss/ssc_loss.py`; FACTS §4): `geo_scal` and
+//! Scene-class affinity losses of MonoScene (`loss/ssc_loss.py`; docs/losses.md §4): `geo_scal` and
 //! `sem_scal`. Both use the softmax probabilities of the voxels whose label is not `ignore` only
 //! (the ignore mask is applied before every sum), and `BCE(x, 1) = min(−ln x, 100)` as PyTorch's
 //! `binary_cross_entropy` with target 1.
@@ -30,7 +30,7 @@ pub fn geo_scal_loss<B: Backend>(
     geo_scal_loss_probs(softmax(logits, 1), labels, empty, ignore)
 }
 
-/// Geometric scene-class affinity loss on class probabilities `probs` `[N, C]` (FACTS §4).
+/// Geometric scene-class affinity loss on class probabilities `probs` `[N, C]` (docs/losses.md §4).
 ///
 /// Over the rows with `label != ignore`: `p0 = probs[:, empty]`, `pn = 1 − p0`,
 /// `t = (label != empty)`; `P = Σ t·pn / Σ pn`, `R = Σ t·pn / Σ t`, `S = Σ (1−t)·p0 / Σ (1−t)`;
@@ -90,7 +90,7 @@ pub fn sem_scal_loss<B: Backend>(
     sem_scal_loss_probs(softmax(logits, 1), labels, ignore)
 }
 
-/// Semantic scene-class affinity loss on class probabilities `probs` `[N, C]` (FACTS §4).
+/// Semantic scene-class affinity loss on class probabilities `probs` `[N, C]` (docs/losses.md §4).
 ///
 /// Over the rows with `label != ignore`, for each class `i` present there, with `t = (label == i)`:
 /// `P = Σ p_i·t / Σ p_i` (only if `Σ p_i > 0`), `R = Σ p_i·t / Σ t`,

@@ -1,4 +1,5 @@
-//! Shared test helpers: seeded random sparse inputs, dense references, fixture discovery.
+//! Shared test helpers: seeded random sparse inputs, dense references, `.npy` reading (the fixtures
+//! folder itself is found by `occ_testdata`).
 #![allow(dead_code)]
 
 use burn::backend::{Autodiff, NdArray};
@@ -8,7 +9,6 @@ use occ_sparse::Coord;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashSet;
-use std::path::PathBuf;
 
 /// f64 autodiff backend used for reference comparisons.
 pub type B64 = Autodiff<NdArray<f64>>;
@@ -97,26 +97,6 @@ pub fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
         .zip(b)
         .map(|(x, y)| (x - y).abs())
         .fold(0.0, f64::max)
-}
-
-fn dir_from_env(var: &str, default_rel: &str) -> PathBuf {
-    let p = match std::env::var_os(var) {
-        Some(v) => PathBuf::from(v),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-            .join("../..")
-            .join(default_rel),
-    };
-    assert!(
-        p.is_dir(),
-        "test data folder {} is missing: set {var} or provide ../shared next to the repository",
-        p.display()
-    );
-    p
-}
-
-/// The fixtures folder (`SPARSEOCC_FIXTURES`, default `../shared/fixtures`).
-pub fn fixtures_dir() -> PathBuf {
-    dir_from_env("SPARSEOCC_FIXTURES", "../shared/fixtures")
 }
 
 /// Reads a little-endian C-order .npy file as (values, shape).

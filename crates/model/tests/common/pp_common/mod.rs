@@ -286,21 +286,6 @@ pub fn assert_all_grads<B: AutodiffBackend, M: Module<B>>(
     v.total
 }
 
-/// `SPARSEOCC_FIXTURES` or `<repo root>/../shared/fixtures`; panics with a clear message if missing.
-pub fn fixtures_dir() -> std::path::PathBuf {
-    let dir = std::env::var_os("SPARSEOCC_FIXTURES")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| {
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures")
-        });
-    assert!(
-        dir.is_dir(),
-        "fixtures folder {} not found: set SPARSEOCC_FIXTURES to the shared fixtures folder",
-        dir.display()
-    );
-    dir
-}
-
 /// Reads an .npy file: shape and values.
 pub fn read_npy<T: npyz::Deserialize>(path: &std::path::Path) -> (Vec<usize>, Vec<T>) {
     let f = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -310,9 +295,16 @@ pub fn read_npy<T: npyz::Deserialize>(path: &std::path::Path) -> (Vec<usize>, Ve
     (shape, npy.into_vec().unwrap())
 }
 
-/// The fixture manifest's file table.
-pub fn manifest_files() -> serde_json::Map<String, serde_json::Value> {
-    let p = fixtures_dir().join("reference/manifest.json");
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-    m["files"].as_object().expect("manifest has files").clone()
+/// `$SPARSEOCC_FIXTURES/reference` and its manifest's file table, or `None` (skip reported by
+/// `occ_testdata`) without the external fixtures folder.
+pub fn reference_fixtures() -> Option<(
+    std::path::PathBuf,
+    serde_json::Map<String, serde_json::Value>,
+)> {
+    let dir = occ_testdata::fixtures()?.join("reference");
+    let p = dir.join("manifest.json");
+    let text = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let m: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let files = m["files"].as_object().expect("manifest has files").clone();
+    Some((dir, files))
 }
