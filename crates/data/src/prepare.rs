@@ -249,8 +249,7 @@ pub fn prepare_semantic_kitti(
             ("occluded", occluded.clone()),
         ] {
             for f in &stems {
-                if let Some(problem) =
-                    voxel_file_problem(&paths.voxels(seq, f, ext), ext, n_voxels)
+                if let Some(problem) = voxel_file_problem(&paths.voxels(seq, f, ext), ext, n_voxels)
                 {
                     problems.push((f.clone(), ext, problem));
                 }

@@ -26,7 +26,10 @@ fn check(bytes: &[u8]) -> Result<(), String> {
     if f.len() != 6 || f[0] != "LEN" || f[2] != "ID" || f[4] != "ROUND" {
         return Err(format!("bad header {header:?}"));
     }
-    let (id, round): (u64, u64) = (f[3].parse().map_err(|_| "id")?, f[5].parse().map_err(|_| "round")?);
+    let (id, round): (u64, u64) = (
+        f[3].parse().map_err(|_| "id")?,
+        f[5].parse().map_err(|_| "round")?,
+    );
     if document(id, round) != bytes {
         return Err(format!(
             "writer {id} round {round}: {} bytes, not the complete document",
@@ -90,7 +93,11 @@ fn concurrent_threads_leave_a_complete_file() {
         });
     });
     check(&std::fs::read(&path).unwrap()).unwrap();
-    assert!(leftovers(&dir, "out.json").is_empty(), "{:?}", leftovers(&dir, "out.json"));
+    assert!(
+        leftovers(&dir, "out.json").is_empty(),
+        "{:?}",
+        leftovers(&dir, "out.json")
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -139,7 +146,11 @@ fn two_processes_leave_a_complete_file() {
             assert!(c.wait().unwrap().success());
         }
         check(&std::fs::read(&path).unwrap()).unwrap();
-        assert!(leftovers(&dir, "out.json").is_empty(), "{:?}", leftovers(&dir, "out.json"));
+        assert!(
+            leftovers(&dir, "out.json").is_empty(),
+            "{:?}",
+            leftovers(&dir, "out.json")
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -159,7 +170,9 @@ fn a_failed_write_leaves_the_old_file_and_no_temporary() {
     left.retain(|n| n != "sub");
     assert!(left.is_empty(), "{left:?}");
     // A missing folder is an error naming the file.
-    let e = write_atomic(&dir.join("no/such/out.json"), b"x").unwrap_err().to_string();
+    let e = write_atomic(&dir.join("no/such/out.json"), b"x")
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("out.json"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -79,7 +79,11 @@ fn crc32(bytes: &[u8]) -> u32 {
     for &b in bytes {
         c ^= b as u32;
         for _ in 0..8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
         }
     }
     !c
@@ -123,7 +127,11 @@ fn images_claiming_huge_sizes_are_errors_not_aborts() {
         ("huge.png", png_claiming(100_000, 100_000), "100000x100000"),
         ("wide.png", png_claiming(2_000_000_000, 1), "2000000000x1"),
         ("huge.jpg", jpeg_claiming(16_000, 16_000), "16000x16000"),
-        ("huge_jpeg_named.png", jpeg_claiming(16_384, 5_000), "16384x5000"),
+        (
+            "huge_jpeg_named.png",
+            jpeg_claiming(16_384, 5_000),
+            "16384x5000",
+        ),
     ];
     for (name, bytes, size) in &cases {
         let p = dir.join(name);

@@ -240,7 +240,11 @@ pub fn score_semantic_kitti_folder(
         // SemanticKITTI ground truth (it would score 0 without a word).
         let unlisted = raw.iter().filter(|&&r| !map.is_listed(r)).count();
         if unlisted * 2 > raw.len() {
-            let first = raw.iter().find(|&&r| !map.is_listed(r)).copied().unwrap_or_default();
+            let first = raw
+                .iter()
+                .find(|&&r| !map.is_listed(r))
+                .copied()
+                .unwrap_or_default();
             return Err(EvalError::BadGroundTruth {
                 path: job.gt.clone(),
                 detail: format!(
@@ -367,7 +371,10 @@ pub fn score_occ3d_folder(
                 .map(|n| n.to_string_lossy().into_owned())
         };
         for s in &scenes {
-            if !rels.iter().any(|r| scene_of(r).as_deref() == Some(s.as_str())) {
+            if !rels
+                .iter()
+                .any(|r| scene_of(r).as_deref() == Some(s.as_str()))
+            {
                 return Err(EvalError::NoFrames {
                     root: base,
                     what: format!("scene {s} has no <scene>/<token>/labels.npz"),

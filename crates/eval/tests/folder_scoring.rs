@@ -500,7 +500,11 @@ fn occ3d_sequences_and_ground_truth_shape() {
         std::fs::create_dir_all(&dir).unwrap();
         write_labels_npz(&dir.join("labels.npz"), &l).unwrap();
     };
-    for (scene, token) in [("scene-0001", "a"), ("scene-0001", "b"), ("scene-0002", "c")] {
+    for (scene, token) in [
+        ("scene-0001", "a"),
+        ("scene-0001", "b"),
+        ("scene-0002", "c"),
+    ] {
         write(&gt_dir.0.join("gts"), scene, token, dims, 17);
         write(&pred_dir.0, scene, token, dims, 17);
     }
@@ -515,7 +519,9 @@ fn occ3d_sequences_and_ground_truth_shape() {
     assert_eq!(score(&["scene-0002"]).unwrap().frames, 1);
     assert_eq!(score(&["scene-0001"]).unwrap().frames, 2);
     assert_eq!(score(&["scene-0001", "scene-0002"]).unwrap().frames, 3);
-    let e = score(&["scene-0001", "scene-0001"]).unwrap_err().to_string();
+    let e = score(&["scene-0001", "scene-0001"])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("scene-0001") && e.contains("twice"), "{e}");
     let e = score(&["scene-9999"]).unwrap_err().to_string();
     assert!(e.contains("scene-9999"), "{e}");

@@ -2,7 +2,9 @@
 //! class grids written in the dataset's own layout (SemanticKITTI submission `.label`, Occ3D
 //! `labels.npz`, nuScenes-Occupancy sparse `.npy`).
 
-use crate::dataset::{camera_input, check_image_fits_calibration, collate, Dataset, FrameRef, Sample};
+use crate::dataset::{
+    camera_input, check_image_fits_calibration, collate, Dataset, FrameRef, Sample,
+};
 use crate::mirror::mirror_sample_y;
 use crate::TrainError;
 use occ_data::formats::semantic_kitti as sk;
