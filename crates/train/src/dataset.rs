@@ -190,7 +190,28 @@ impl KittiDataset {
                     dir.display()
                 )));
             }
-            for frame in sk::list_stems(&dir, "png")? {
+            let images = sk::list_stems(&dir, "png")?;
+            // A labelled frame without its image would be left out of the predictions (and then
+            // reported as a missing prediction when scoring): name every such frame now.
+            let labelled = sk::list_stems(&paths.sequence_dir(seq).join("voxels"), "label")?;
+            let orphans: Vec<&String> = labelled
+                .iter()
+                .filter(|f| images.binary_search(f).is_err())
+                .collect();
+            if let Some(first) = orphans.first() {
+                return Err(TrainError::Data(format!(
+                    "{}: missing; {} labelled frame(s) of sequence {seq} have no image ({})",
+                    paths.image_2(seq, first).display(),
+                    orphans.len(),
+                    orphans
+                        .iter()
+                        .take(10)
+                        .map(|s| s.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )));
+            }
+            for frame in images {
                 frames.push(FrameRef {
                     sequence: seq.clone(),
                     frame,
@@ -265,7 +286,23 @@ impl KittiDataset {
         let n = self.grid.num_voxels();
         let label_p = self.paths.voxels(&f.sequence, &f.frame, "label");
         let target = if label_p.exists() {
-            let mut t = self.map.remap(&sk::read_label_raw(&label_p, n)?);
+            let raw = sk::read_label_raw(&label_p, n)?;
+            // Unlisted ids are ignored (255), as in scoring; a frame made mostly of them is not
+            // SemanticKITTI ground truth.
+            let count = raw.iter().filter(|&&r| !self.map.is_listed(r)).count();
+            if count * 2 > raw.len() {
+                let bad = raw
+                    .iter()
+                    .find(|&&r| !self.map.is_listed(r))
+                    .copied()
+                    .unwrap_or_default();
+                return Err(TrainError::Data(format!(
+                    "{}: {count} of {n} voxels have ids the SemanticKITTI learning map does not list \
+                     (e.g. {bad}); not SemanticKITTI voxel labels",
+                    label_p.display()
+                )));
+            }
+            let mut t = self.map.remap(&raw);
             let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
             if inv_p.exists() {
                 let inv = sk::read_packed_bits(&inv_p, n)?;
