@@ -306,7 +306,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     let cfg = RunConfig::load(&args.config)?;
     let preset = preset_for(cfg.data.format, cfg.model.full_dims)?;
-    let tmp = std::env::temp_dir().join(format!("sparseocc-bench-{}", std::process::id()));
+    let tmp = occ_data::formats::io::temp_sibling(&std::env::temp_dir().join("sparseocc-bench"));
     let synth = SynthConfig::new(preset, 7, vec![("00".to_string(), 1)]);
     synthetic::generate(&tmp, &synth, &mut |_, _| {})?;
     let result = (|| -> Result<()> {
@@ -402,9 +402,7 @@ fn scan(args: &BenchArgs, data: &Path, prefix: &Path) -> Result<()> {
     };
     let img = line_plot(&spec, 900, 520)?;
     let png_p = prefix.with_extension("png");
-    let tmp = png_p.with_extension("png.tmp");
-    occ_data::image::write_png(&tmp, &img)?;
-    std::fs::rename(&tmp, &png_p).with_context(|| format!("writing {}", png_p.display()))?;
+    occ_data::image::write_png(&png_p, &img)?;
     eprintln!("wrote {} and {}", json_p.display(), png_p.display());
     Ok(())
 }

@@ -238,7 +238,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         TensorData::new(img.clone(), [1, 3, h, wd]),
         &cpu_dev,
     ));
-    let tmp = std::env::temp_dir().join(format!("sparseocc-check-{}", std::process::id()));
+    let tmp = occ_data::formats::io::temp_sibling(&std::env::temp_dir().join("sparseocc-check"));
     let rec = BinFileRecorder::<FullPrecisionSettings>::new();
     cpu_enc.save_file(tmp.clone(), &rec)?;
     let dev_enc = enc_cfg

@@ -21,7 +21,8 @@ pub struct EvalArgs {
     /// Prediction root (SemanticKITTI: sequences/XX/predictions/NNNNNN.label).
     #[arg(long)]
     pub pred: PathBuf,
-    /// Sequences to score (comma-separated), default all with voxel labels.
+    /// Sequences to score (comma-separated; SemanticKITTI ids, `8` = `08`, or Occ3D scene names),
+    /// each once; default all with labels.
     #[arg(long)]
     pub sequences: Option<String>,
     /// Write the report as JSON here.

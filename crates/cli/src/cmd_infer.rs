@@ -87,11 +87,19 @@ pub fn load_checkpoint(path: &Path) -> Result<(RunConfig, VoxelGrid, OccNet<Infe
     let device = backend::device();
     let model: OccNet<Infer> = cfg.model.init(&device)?;
     let weights = run.join("checkpoint").join("model.bin");
-    let model = occ_model::load_checked(model, &weights, &device).map_err(|e| {
-        anyhow::anyhow!(
-            "{e} (config {}; the checkpoint does not match it)",
-            run.join("config.toml").display()
-        )
+    let model = occ_train::trainer::load_weights(model, &weights, &device).map_err(|e| {
+        let e = e.to_string();
+        if e.contains("truncated or damaged")
+            || e.contains("not a readable burn record")
+            || e.contains("missing")
+        {
+            anyhow::anyhow!(e)
+        } else {
+            anyhow::anyhow!(
+                "{e} (config {}; the checkpoint does not match it)",
+                run.join("config.toml").display()
+            )
+        }
     })?;
     Ok((cfg, grid, model))
 }

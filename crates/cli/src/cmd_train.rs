@@ -109,7 +109,16 @@ pub fn run_with(
     resume: bool,
     validate: bool,
 ) -> Result<TrainOutcome> {
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // Nothing is written into the run folder before the settings, the checkpoint to resume from
+    // and the dataset have been checked.
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    if resume && occ_train::trainer::recover_checkpoint(out)?.is_none() {
+        bail!(
+            "{}: --resume, but the run has no checkpoint ({} is missing); drop --resume to start a new run",
+            out.display(),
+            out.join("checkpoint").join("state.json").display()
+        );
+    }
     let mut ds = Dataset::open(
         data,
         &cfg.data,
@@ -133,11 +142,9 @@ pub fn run_with(
             cfg.model.full_dims
         );
     }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let toml_path = out.join("config.toml");
-    let tmp = out.join("config.toml.tmp");
-    std::fs::write(&tmp, cfg.to_toml()?).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &toml_path)
-        .with_context(|| format!("writing {}", toml_path.display()))?;
+    crate::util::write_file(&toml_path, cfg.to_toml()?.as_bytes())?;
     crate::util::write_json(&out.join("grid.json"), &ds.grid())?;
 
     let device = backend::device();

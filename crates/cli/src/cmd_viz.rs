@@ -3,7 +3,7 @@
 use crate::labels_io::{read_label_grid, LabelGrid};
 use anyhow::{Context, Result};
 use occ_data::formats::semantic_kitti as sk;
-use occ_data::image::{read_png, write_png, RgbImage};
+use occ_data::image::{read_image, write_png, RgbImage};
 use occ_viz::{
     overlay_on_image, render_voxels, side_by_side, write_ply, OverlayOptions, PlyOptions,
     RenderOptions,
@@ -71,8 +71,11 @@ pub fn render_panel_set(
         anyhow::bail!("{}: nothing to render", out.display());
     };
     if let Some((img_p, calib_p)) = image {
-        let img = read_png(img_p)?;
         let calib = sk::read_calib(calib_p)?;
+        // The header against the size limit and the calibration before decoding.
+        let (w, h) = occ_data::image::read_image_size(img_p)?;
+        occ_train::dataset::check_image_fits_calibration(img_p, w, h, calib_p, &calib)?;
+        let img = read_image(img_p)?;
         let view = calib.camera_view(img.width, img.height);
         let mut oo = OverlayOptions::new(shown.palette);
         oo.color_by_height = shown.occupancy_only;

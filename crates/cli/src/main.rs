@@ -67,7 +67,25 @@ fn main() {
         Cmd::Eval(a) => cmd_eval::run(a).map(|_| ()),
     };
     if let Err(e) = r {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", error_text(&e));
         std::process::exit(1);
     }
+}
+
+/// The error and its causes on one line, `outer: cause: cause`, each cause once: many errors
+/// already print their source (`path: No such file or directory`), which `{:#}` would repeat.
+fn error_text(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let c = cause.to_string();
+        let c = c.trim();
+        if c.is_empty() || text.contains(c) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(c);
+    }
+    text
 }

@@ -37,8 +37,59 @@ impl RgbImage {
     }
 }
 
+/// The largest image the readers decode: 8192 x 8192 pixels (a 192 MiB RGB buffer). A header
+/// claiming more is an error naming the file, raised before anything is allocated.
+pub const MAX_IMAGE_PIXELS: usize = 8192 * 8192;
+
+/// Checks the size an image header claims against [`MAX_IMAGE_PIXELS`].
+pub fn check_image_size(path: &Path, width: usize, height: usize) -> Result<(), DataError> {
+    if width == 0 || height == 0 {
+        return Err(DataError::Image {
+            path: path.to_path_buf(),
+            detail: format!("the header claims an empty {width}x{height} image"),
+        });
+    }
+    match width.checked_mul(height) {
+        Some(n) if n <= MAX_IMAGE_PIXELS => Ok(()),
+        _ => Err(DataError::Image {
+            path: path.to_path_buf(),
+            detail: format!(
+                "the header claims {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS} \
+                 (8192x8192) this reader decodes"
+            ),
+        }),
+    }
+}
+
+/// The size (width, height) of a PNG or JPEG from its header alone (nothing decoded), checked
+/// against [`MAX_IMAGE_PIXELS`].
+pub fn read_image_size(path: &Path) -> Result<(usize, usize), DataError> {
+    let bytes = read_bytes(path)?;
+    let (w, h) = if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+        let mut dec = zune_jpeg::JpegDecoder::new(std::io::Cursor::new(&bytes));
+        dec.decode_headers().map_err(|e| DataError::Image {
+            path: path.to_path_buf(),
+            detail: format!("not a decodable JPEG: {e:?}"),
+        })?;
+        dec.dimensions().ok_or_else(|| DataError::Image {
+            path: path.to_path_buf(),
+            detail: "JPEG without a frame header".into(),
+        })?
+    } else {
+        let mut decoder = png::Decoder::new(bytes.as_slice());
+        let info = decoder.read_header_info().map_err(|e| DataError::Image {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        })?;
+        (info.width as usize, info.height as usize)
+    };
+    check_image_size(path, w, h)?;
+    Ok((w, h))
+}
+
 /// Read a camera image, PNG or JPEG (told apart by the file's magic bytes, not its name), as RGB8.
-/// A missing file gives [`DataError::NotFound`] naming it.
+/// A missing file gives [`DataError::NotFound`] naming it; a header claiming more than
+/// [`MAX_IMAGE_PIXELS`] is an error before any pixel buffer is allocated.
 pub fn read_image(path: &Path) -> Result<RgbImage, DataError> {
     let bytes = read_bytes(path)?;
     if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
@@ -58,6 +109,12 @@ pub fn decode_jpeg(bytes: &[u8], path: &Path) -> Result<RgbImage, DataError> {
     };
     let opts = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB);
     let mut dec = zune_jpeg::JpegDecoder::new_with_options(std::io::Cursor::new(bytes), opts);
+    dec.decode_headers()
+        .map_err(|e| err(format!("not a decodable JPEG: {e:?}")))?;
+    let (hw, hh) = dec
+        .dimensions()
+        .ok_or_else(|| err("JPEG without a frame header".into()))?;
+    check_image_size(path, hw, hh)?;
     let data = dec
         .decode()
         .map_err(|e| err(format!("not a decodable JPEG: {e:?}")))?;
@@ -91,6 +148,15 @@ pub fn decode_png(bytes: &[u8], path: &Path) -> Result<RgbImage, DataError> {
         detail: e.to_string(),
     };
     let mut decoder = png::Decoder::new(bytes);
+    {
+        let info = decoder.read_header_info().map_err(err)?;
+        check_image_size(path, info.width as usize, info.height as usize)?;
+    }
+    // The decoder's own allocations (rows, palette expansion, 16-bit input) stay within a few
+    // times the largest RGBA image.
+    decoder.set_limits(png::Limits {
+        bytes: MAX_IMAGE_PIXELS * 8 + (1 << 20),
+    });
     decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
     let mut reader = decoder.read_info().map_err(err)?;
     let mut buf = vec![0u8; reader.output_buffer_size()];

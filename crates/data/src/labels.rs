@@ -12,6 +12,8 @@ use crate::error::DataError;
 #[derive(Clone, Debug, PartialEq)]
 pub struct LearningMap {
     lut: Vec<u8>,
+    /// Raw ids the map lists (whatever class they get).
+    listed: Vec<bool>,
     inv: [u16; 256],
     num_classes: usize,
 }
@@ -65,8 +67,10 @@ impl LearningMap {
     /// (unlisted or class-0 raw ids -> 255, raw 0 -> 0).
     pub fn from_pairs(pairs: &[(u16, u8)], inverse: &[u16]) -> Self {
         let mut lut = vec![0u8; 65536];
+        let mut listed = vec![false; 65536];
         for &(raw, class) in pairs {
             lut[raw as usize] = class;
+            listed[raw as usize] = true;
         }
         for v in lut.iter_mut() {
             if *v == 0 {
@@ -80,6 +84,7 @@ impl LearningMap {
         }
         LearningMap {
             lut,
+            listed,
             inv,
             num_classes: inverse.len(),
         }
@@ -96,6 +101,12 @@ impl LearningMap {
     /// Number of training classes (20 for SemanticKITTI).
     pub fn num_classes(&self) -> usize {
         self.num_classes
+    }
+
+    /// True for a raw id the map lists (raw 0 always): ids it does not list are not labels of this
+    /// dataset (a corrupted or foreign label file).
+    pub fn is_listed(&self, raw: u16) -> bool {
+        raw == 0 || self.listed[raw as usize]
     }
 
     /// Training class of a raw id (0..num_classes, or 255 = ignore).

@@ -6,7 +6,7 @@ use crate::error::DataError;
 use crate::formats::io::create_dir_all;
 use crate::formats::semantic_kitti::{
     list_sequences, list_stems, preprocess_labels, read_label_raw, read_packed_bits, split_of,
-    write_label_npy, KittiPaths, LearningMap, DIMS, NUM_VOXELS,
+    write_label_npy, KittiPaths, LearningMap, DIMS,
 };
 use crate::labels::downsample_labels;
 use rayon::prelude::*;
@@ -88,25 +88,53 @@ impl PrepareReport {
 }
 
 /// Preprocess one frame: read `voxels/NNNNNN.label` + `.invalid`, write `_1_1.npy` and `_1_2.npy`.
+/// `dims` is the dataset's label grid (SemanticKITTI's 256x256x32, or a synthetic dataset's own,
+/// from its `synthetic.json`).
 pub fn preprocess_frame(
     paths: &KittiPaths,
     labels_root: &Path,
     seq: &str,
     frame: &str,
     map: &LearningMap,
+    dims: [usize; 3],
 ) -> Result<(), DataError> {
-    let raw = read_label_raw(&paths.voxels(seq, frame, "label"), NUM_VOXELS)?;
-    let invalid = read_packed_bits(&paths.voxels(seq, frame, "invalid"), NUM_VOXELS)?;
+    let n = dims.iter().product();
+    let raw = read_label_raw(&paths.voxels(seq, frame, "label"), n)?;
+    let invalid = read_packed_bits(&paths.voxels(seq, frame, "invalid"), n)?;
     let full = preprocess_labels(&raw, &invalid, map)?;
-    let half = downsample_labels(&full, DIMS, 2)?;
+    let half = downsample_labels(&full, dims, 2)?;
     let out = KittiPaths::new(labels_root);
-    write_label_npy(&out.preprocessed_label(seq, frame, 1), &full, DIMS)?;
+    write_label_npy(&out.preprocessed_label(seq, frame, 1), &full, dims)?;
     write_label_npy(
         &out.preprocessed_label(seq, frame, 2),
         &half,
-        [DIMS[0] / 2, DIMS[1] / 2, DIMS[2] / 2],
+        [dims[0] / 2, dims[1] / 2, dims[2] / 2],
     )?;
     Ok(())
+}
+
+/// The size problem of a voxel file of `n` voxels, if any (`.label`: 2 bytes per voxel; `.bin`,
+/// `.invalid`, `.occluded`: one bit per voxel); a folder in place of the file is one too.
+fn voxel_file_problem(path: &Path, ext: &str, n: usize) -> Option<String> {
+    let expected = match ext {
+        "label" => 2 * n,
+        _ => n.div_ceil(8),
+    } as u64;
+    match std::fs::metadata(path) {
+        Err(e) => Some(format!("{}: {e}", path.display())),
+        Ok(m) if !m.is_file() => Some(format!("{}: not a file", path.display())),
+        Ok(m) if m.len() < expected => Some(format!(
+            "{}: truncated: expected {expected} bytes for {n} voxels, found {}",
+            path.display(),
+            m.len()
+        )),
+        Ok(m) if m.len() > expected => Some(format!(
+            "{}: wrong size: expected {expected} bytes for {n} voxels, found {}",
+            path.display(),
+            m.len()
+        )),
+        Ok(_) => None,
+    }
 }
 
 fn missing(frames: &[String], have: &BTreeSet<String>) -> Vec<String> {
@@ -134,6 +162,18 @@ pub fn prepare_semantic_kitti(
         });
     }
     let paths = KittiPaths::new(root);
+    // A synthetic dataset (e.g. `sparseocc synth --preset kitti-small`) has its own grid.
+    let dims = match crate::synthetic::read_synthetic_meta(root)? {
+        Some(m) => m.grid.dims,
+        None => DIMS,
+    };
+    let n_voxels: usize = dims.iter().product();
+    if dims.iter().any(|d| d % 2 != 0) {
+        return Err(DataError::InvalidArgument(format!(
+            "{}: the label grid {dims:?} cannot be halved for the 1/2-resolution labels",
+            root.display()
+        )));
+    }
     let labels_root = opts.out_root.clone().unwrap_or_else(|| root.to_path_buf());
     let out_paths = KittiPaths::new(&labels_root);
     let present = list_sequences(root)?;
@@ -198,6 +238,24 @@ pub fn prepare_semantic_kitti(
         if r.split != "test" {
             r.missing_label = missing(&bins, &vlabel);
         }
+        // Every voxel file must have the grid's size, also with --check. The `.label` and
+        // `.invalid` of a frame that is preprocessed below are read (and their problems reported)
+        // by that; the others are reported here.
+        let mut problems: Vec<(String, &str, String)> = Vec::new();
+        for (ext, stems) in [
+            ("bin", bins.iter().cloned().collect::<BTreeSet<String>>()),
+            ("label", vlabel.clone()),
+            ("invalid", invalid.clone()),
+            ("occluded", occluded.clone()),
+        ] {
+            for f in &stems {
+                if let Some(problem) = voxel_file_problem(&paths.voxels(seq, f, ext), ext, n_voxels)
+                {
+                    problems.push((f.clone(), ext, problem));
+                }
+            }
+        }
+        let jobs_before = jobs.len();
         // frames with label + invalid (a .label without .bin still counts)
         for f in vlabel.iter().filter(|f| invalid.contains(*f)) {
             report.preprocessable += 1;
@@ -208,6 +266,16 @@ pub fn prepare_semantic_kitti(
                 r.preprocessed += 1;
             } else if !opts.check_only {
                 jobs.push((si, f.clone()));
+            }
+        }
+        let queued: BTreeSet<&String> = jobs[jobs_before..].iter().map(|(_, f)| f).collect();
+        for (f, ext, problem) in problems {
+            if !(queued.contains(&f) && (ext == "label" || ext == "invalid")) {
+                report.failures.push(FrameFailure {
+                    sequence: seq.clone(),
+                    frame: f,
+                    error: problem,
+                });
             }
         }
         report.sequences.push(r);
@@ -226,7 +294,9 @@ pub fn prepare_semantic_kitti(
         for batch in jobs.chunks(chunk) {
             let results: Vec<Result<(), DataError>> = batch
                 .par_iter()
-                .map(|(si, f)| preprocess_frame(&paths, &labels_root, &selected[*si], f, &map))
+                .map(|(si, f)| {
+                    preprocess_frame(&paths, &labels_root, &selected[*si], f, &map, dims)
+                })
                 .collect();
             for ((si, f), res) in batch.iter().zip(results) {
                 match res {

@@ -72,3 +72,91 @@ fn image_kind_is_read_from_the_content_not_the_name() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// CRC-32 (PNG chunks).
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}
+
+/// A valid small PNG whose IHDR (with a correct CRC) claims `w` x `h` pixels.
+fn png_claiming(w: u32, h: u32) -> Vec<u8> {
+    let img = RgbImage {
+        width: 4,
+        height: 4,
+        data: vec![7; 48],
+    };
+    let mut b = occ_data::image::encode_png(&img).unwrap();
+    // Signature (8), IHDR length (4), "IHDR" (4), width, height at 16..24, CRC at 29..33.
+    b[16..20].copy_from_slice(&w.to_be_bytes());
+    b[20..24].copy_from_slice(&h.to_be_bytes());
+    let crc = crc32(&b[12..29]);
+    b[29..33].copy_from_slice(&crc.to_be_bytes());
+    b
+}
+
+/// The 48x32 JPEG fixture with its frame header patched to claim `w` x `h` pixels.
+fn jpeg_claiming(w: u16, h: u16) -> Vec<u8> {
+    let mut b = std::fs::read(fixture("pattern_444.jpg")).unwrap();
+    let sof = (0..b.len() - 1)
+        .find(|&i| b[i] == 0xFF && (b[i + 1] == 0xC0 || b[i + 1] == 0xC2))
+        .expect("a frame header");
+    // FFCx, length (2), precision (1), height (2), width (2).
+    b[sof + 5..sof + 7].copy_from_slice(&h.to_be_bytes());
+    b[sof + 7..sof + 9].copy_from_slice(&w.to_be_bytes());
+    b
+}
+
+/// Headers claiming huge images are errors naming the file and the size, raised before the pixel
+/// buffer is allocated (a 100000x100000 PNG used to abort the process on a 30 GB allocation).
+#[test]
+fn images_claiming_huge_sizes_are_errors_not_aborts() {
+    let dir = std::env::temp_dir().join(format!("occ-data-huge-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        ("huge.png", png_claiming(100_000, 100_000), "100000x100000"),
+        ("wide.png", png_claiming(2_000_000_000, 1), "2000000000x1"),
+        ("huge.jpg", jpeg_claiming(16_000, 16_000), "16000x16000"),
+        (
+            "huge_jpeg_named.png",
+            jpeg_claiming(16_384, 5_000),
+            "16384x5000",
+        ),
+    ];
+    for (name, bytes, size) in &cases {
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        for e in [
+            read_image(&p).unwrap_err(),
+            occ_data::image::read_image_size(&p).unwrap_err(),
+        ] {
+            assert!(matches!(e, DataError::Image { .. }), "{name}: {e}");
+            let e = e.to_string();
+            assert!(e.contains(name) && e.contains(size), "{name}: {e}");
+        }
+    }
+    // A PNG claiming an empty image.
+    let p = dir.join("empty.png");
+    std::fs::write(&p, png_claiming(0, 5)).unwrap();
+    assert!(read_image(&p).is_err());
+    // The unpatched sizes read fine, from the header alone too.
+    let ok = dir.join("ok.png");
+    std::fs::write(&ok, png_claiming(4, 4)).unwrap();
+    assert_eq!(occ_data::image::read_image_size(&ok).unwrap(), (4, 4));
+    assert_eq!(read_image(&ok).unwrap().width, 4);
+    assert_eq!(
+        occ_data::image::read_image_size(&fixture("pattern_444.jpg")).unwrap(),
+        (48, 32)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

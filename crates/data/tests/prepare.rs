@@ -169,3 +169,38 @@ fn writes_preprocessed_labels() {
     )
     .is_err());
 }
+
+/// The project's own `kitti-small` synthetic output (128x128x16 labels, its grid in
+/// `synthetic.json`) prepares without failures; with `--check`, a voxel file of the wrong size is a
+/// failure naming it (a 1000-byte `.label` used to pass).
+#[test]
+fn synthetic_grids_prepare_and_check_catches_wrong_sizes() {
+    use occ_data::synthetic::{generate, Preset, SynthConfig};
+    let tmp = TempDir::new("prepare-synth");
+    let root = tmp.path();
+    let cfg = SynthConfig::new(Preset::KittiSmall, 3, vec![("00".to_string(), 2)]);
+    generate(root, &cfg, &mut |_, _| {}).unwrap();
+    let check = PrepareOptions {
+        check_only: true,
+        ..Default::default()
+    };
+    let r = prepare_semantic_kitti(root, &check, &mut |_, _| {}).unwrap();
+    assert!(r.ok(), "{:?}", r.failures);
+    let p = KittiPaths::new(root);
+    let label = p.voxels("00", "000001", "label");
+    let good = std::fs::read(&label).unwrap();
+    std::fs::write(&label, vec![0u8; 1000]).unwrap();
+    let r = prepare_semantic_kitti(root, &check, &mut |_, _| {}).unwrap();
+    assert_eq!(r.failures.len(), 1, "{:?}", r.failures);
+    let e = &r.failures[0].error;
+    assert!(e.contains("000001.label") && e.contains("truncated"), "{e}");
+    assert_eq!(r.written, 0);
+    std::fs::write(&label, &good).unwrap();
+    let r = prepare_semantic_kitti(root, &PrepareOptions::default(), &mut |_, _| {}).unwrap();
+    assert!(r.ok(), "{:?}", r.failures);
+    assert_eq!(r.written, 2);
+    let (_, dims) = read_label_npy(&p.preprocessed_label("00", "000000", 1)).unwrap();
+    assert_eq!(dims, [128, 128, 16]);
+    let (_, half) = read_label_npy(&p.preprocessed_label("00", "000000", 2)).unwrap();
+    assert_eq!(half, [64, 64, 8]);
+}

@@ -43,6 +43,18 @@ pub enum EvalError {
         /// What is wrong.
         detail: String,
     },
+    /// A ground-truth file is malformed (not a file, ids outside the dataset's label set, a grid of
+    /// the wrong shape).
+    #[error("{}: {detail}", path.display())]
+    BadGroundTruth {
+        /// The ground-truth file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The options contradict themselves or the data (e.g. a sequence listed twice).
+    #[error("{0}")]
+    InvalidOptions(String),
     /// Evaluators or reports of different protocols / class counts were combined.
     #[error("cannot combine evaluations: {0}")]
     Incompatible(String),

@@ -10,7 +10,8 @@
 //!   format, 256×256×32);
 //! - both are remapped with the learning-map lut ([`LearningMap::semantic_kitti`]); prediction ids
 //!   that remap to 255 (unknown ids, outlier, other-structure, other-object) are invalid predictions
-//!   (see [`crate::protocol`]);
+//!   (see [`crate::protocol`]); ground-truth ids the map does not list are ignored, but a frame with
+//!   more than half of its voxels unlisted is an error (not SemanticKITTI labels);
 //! - every prediction must exist: all are checked before scoring, and the error names the first
 //!   missing file and the count.
 //!
@@ -53,6 +54,9 @@ use rayon::prelude::*;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
+/// The Occ3D-nuScenes label grid.
+const OCC3D_DIMS: [usize; 3] = [200, 200, 16];
+
 /// Which Occ3D mask selects the evaluated voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Occ3dMask {
@@ -68,7 +72,8 @@ pub enum Occ3dMask {
 /// Options of the folder scoring.
 #[derive(Clone, Copy, Default)]
 pub struct FolderOptions<'a> {
-    /// SemanticKITTI sequences to score; `None` = every sequence under `GT/sequences`.
+    /// Sequences to score: SemanticKITTI sequence ids, or Occ3D scene names (the `<scene>` folders
+    /// of the ground truth); `None` = every one. Each may be listed once.
     pub sequences: Option<&'a [String]>,
     /// Occ3D mask.
     pub occ3d_mask: Occ3dMask,
@@ -82,6 +87,57 @@ fn normalise_sequence(s: &str) -> String {
         Ok(n) => format!("{n:02}"),
         Err(_) => s.trim().to_string(),
     }
+}
+
+/// The sequences of `list` after `normalise`, each once: one listed twice (`8` and `08`) is an
+/// error, not scored twice.
+fn unique_sequences(
+    list: &[String],
+    normalise: impl Fn(&str) -> String,
+) -> Result<Vec<String>, EvalError> {
+    let mut out: Vec<String> = Vec::new();
+    for (i, s) in list.iter().enumerate() {
+        let n = normalise(s);
+        if n.is_empty() {
+            return Err(EvalError::InvalidOptions(format!(
+                "--sequences: entry {} is empty",
+                i + 1
+            )));
+        }
+        if let Some(j) = out.iter().position(|o| *o == n) {
+            return Err(EvalError::InvalidOptions(format!(
+                "--sequences: sequence {n} is listed twice (`{}` and `{s}`)",
+                list[j]
+            )));
+        }
+        out.push(n);
+    }
+    Ok(out)
+}
+
+/// A ground-truth entry `dir/*.ext` that is not a regular file (a folder, a broken link) is an
+/// error naming it, rather than a frame silently left out of the score.
+fn refuse_non_files(dir: &Path, ext: &str) -> Result<(), EvalError> {
+    let rd = match std::fs::read_dir(dir) {
+        Ok(rd) => rd,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(source) => {
+            return Err(EvalError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })
+        }
+    };
+    for entry in rd.flatten() {
+        let p = entry.path();
+        if p.extension().and_then(|e| e.to_str()) == Some(ext) && !p.is_file() {
+            return Err(EvalError::BadGroundTruth {
+                path: p,
+                detail: "not a file (a ground-truth frame must be a regular file)".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// One frame to score: ground truth and prediction paths.
@@ -141,7 +197,7 @@ pub fn score_semantic_kitti_folder(
     let gt_paths = KittiPaths::new(gt_root);
     let pred_paths = KittiPaths::new(pred_root);
     let sequences: Vec<String> = match opts.sequences {
-        Some(s) => s.iter().map(|s| normalise_sequence(s)).collect(),
+        Some(s) => unique_sequences(s, normalise_sequence)?,
         None => list_sequences(gt_root)?,
     };
     let mut jobs = Vec::new();
@@ -153,6 +209,7 @@ pub fn score_semantic_kitti_folder(
                 what: format!("sequence {seq} does not exist"),
             });
         }
+        refuse_non_files(&seq_dir.join("voxels"), "label")?;
         for frame in list_stems(&seq_dir.join("voxels"), "label")? {
             jobs.push(Job {
                 name: format!("{seq}/{frame}"),
@@ -178,7 +235,26 @@ pub fn score_semantic_kitti_folder(
         .unwrap_or(NUM_VOXELS);
     let map = LearningMap::semantic_kitti();
     run_jobs(Protocol::SemanticKitti, &jobs, opts, |job, ev| {
-        let gt = map.remap(&read_label_raw(&job.gt, n_voxels)?);
+        let raw = read_label_raw(&job.gt, n_voxels)?;
+        // Unlisted ids are ignored, as by the official script; a frame made mostly of them is not
+        // SemanticKITTI ground truth (it would score 0 without a word).
+        let unlisted = raw.iter().filter(|&&r| !map.is_listed(r)).count();
+        if unlisted * 2 > raw.len() {
+            let first = raw
+                .iter()
+                .find(|&&r| !map.is_listed(r))
+                .copied()
+                .unwrap_or_default();
+            return Err(EvalError::BadGroundTruth {
+                path: job.gt.clone(),
+                detail: format!(
+                    "{unlisted} of {} voxels have ids the SemanticKITTI learning map does not list \
+                     (e.g. {first}); not SemanticKITTI voxel labels",
+                    raw.len()
+                ),
+            });
+        }
+        let gt = map.remap(&raw);
         let invalid_path = job.extra.as_deref().unwrap_or(&job.gt);
         let invalid = read_packed_bits(invalid_path, n_voxels)?;
         let pred = map.remap(&read_label_raw(&job.pred, n_voxels)?);
@@ -285,6 +361,39 @@ pub fn score_occ3d_folder(
             what: "no <scene>/<token>/labels.npz".into(),
         });
     }
+    // `sequences` are scene names: a frame `<...>/<scene>/<token>` is kept when its scene folder is
+    // listed; every listed scene must have frames.
+    if let Some(list) = opts.sequences {
+        let scenes = unique_sequences(list, |s| s.trim().to_string())?;
+        let scene_of = |rel: &Path| {
+            rel.parent()
+                .and_then(|p| p.file_name())
+                .map(|n| n.to_string_lossy().into_owned())
+        };
+        for s in &scenes {
+            if !rels
+                .iter()
+                .any(|r| scene_of(r).as_deref() == Some(s.as_str()))
+            {
+                return Err(EvalError::NoFrames {
+                    root: base,
+                    what: format!("scene {s} has no <scene>/<token>/labels.npz"),
+                });
+            }
+        }
+        rels.retain(|r| scene_of(r).is_some_and(|n| scenes.contains(&n)));
+    }
+    // The grid every ground truth must have: a synthetic dataset's own, else Occ3D's 200x200x16.
+    let meta = match occ_data::synthetic::read_synthetic_meta(gt_root)? {
+        Some(m) => Some(m),
+        None => match gt_root.parent() {
+            Some(p) if base == gt_root && !p.as_os_str().is_empty() => {
+                occ_data::synthetic::read_synthetic_meta(p).unwrap_or(None)
+            }
+            _ => None,
+        },
+    };
+    let expected_dims = meta.map(|m| m.grid.dims).unwrap_or(OCC3D_DIMS);
     let jobs: Vec<Job> = rels
         .iter()
         .map(|rel| {
@@ -307,6 +416,15 @@ pub fn score_occ3d_folder(
     check_predictions(&jobs)?;
     run_jobs(Protocol::Occ3d, &jobs, opts, |job, ev| {
         let gt = read_labels_npz(&job.gt)?;
+        if gt.dims != expected_dims {
+            return Err(EvalError::BadGroundTruth {
+                path: job.gt.clone(),
+                detail: format!(
+                    "grid {:?}, but the dataset's ground truth is {expected_dims:?}",
+                    gt.dims
+                ),
+            });
+        }
         let pred = read_occ3d_prediction(&job.pred, gt.dims)?;
         let mask = match opts.occ3d_mask {
             Occ3dMask::Camera => EvalMask::Visible(&gt.mask_camera),

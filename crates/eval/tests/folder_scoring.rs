@@ -469,3 +469,58 @@ fn real_occ3d_sample_scored_against_itself() {
     assert!((d.per_class.get("sidewalk").unwrap() - n13 / (n13 + n11)).abs() < 1e-12);
     assert_eq!(d.iou, 1.0, "class swaps do not change geometry");
 }
+
+/// Occ3D scoring honours `sequences` (scene names, each once), and ground truth of the wrong grid
+/// is an error blaming the ground-truth file, not the prediction.
+#[test]
+fn occ3d_sequences_and_ground_truth_shape() {
+    let dims = [200usize, 200, 16];
+    let n = dims.iter().product::<usize>();
+    let gt_dir = TempDir::new("occ3d-seq-gt");
+    let pred_dir = TempDir::new("occ3d-seq-pred");
+    let write = |root: &Path, scene: &str, token: &str, dims: [usize; 3], v: u8| {
+        let n: usize = dims.iter().product();
+        let l = Occ3dLabels {
+            semantics: vec![v; n],
+            mask_lidar: vec![1; n],
+            mask_camera: vec![1; n],
+            dims,
+        };
+        let dir = root.join(scene).join(token);
+        std::fs::create_dir_all(&dir).unwrap();
+        write_labels_npz(&dir.join("labels.npz"), &l).unwrap();
+    };
+    for (scene, token) in [
+        ("scene-0001", "a"),
+        ("scene-0001", "b"),
+        ("scene-0002", "c"),
+    ] {
+        write(&gt_dir.0.join("gts"), scene, token, dims, 17);
+        write(&pred_dir.0, scene, token, dims, 17);
+    }
+    let score = |seqs: &[&str]| {
+        let s: Vec<String> = seqs.iter().map(|s| s.to_string()).collect();
+        let opts = FolderOptions {
+            sequences: Some(&s),
+            ..Default::default()
+        };
+        score_occ3d_folder(&gt_dir.0, &pred_dir.0, &opts)
+    };
+    assert_eq!(score(&["scene-0002"]).unwrap().frames, 1);
+    assert_eq!(score(&["scene-0001"]).unwrap().frames, 2);
+    assert_eq!(score(&["scene-0001", "scene-0002"]).unwrap().frames, 3);
+    let e = score(&["scene-0001", "scene-0001"])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("scene-0001") && e.contains("twice"), "{e}");
+    let e = score(&["scene-9999"]).unwrap_err().to_string();
+    assert!(e.contains("scene-9999"), "{e}");
+    // A ground truth of another grid: the error names it (the prediction has the right grid).
+    write(&gt_dir.0.join("gts"), "scene-0002", "c", [100, 100, 16], 17);
+    let e = score(&["scene-0002"]).unwrap_err().to_string();
+    assert!(
+        e.contains("gts/scene-0002/c/labels.npz") && e.contains("[100, 100, 16]"),
+        "{e}"
+    );
+    assert_eq!(n, 640_000);
+}

@@ -62,20 +62,17 @@ fn write_npy<T: npyz::Serialize + npyz::AutoSerialize + Copy>(
     data: &[T],
     shape: &[u64],
 ) -> Result<(), String> {
-    let tmp = path.with_extension("npy.tmp");
-    {
-        let f = std::fs::File::create(&tmp).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    // The project's atomic writer: a fresh temporary name beside `path`, renamed when complete.
+    occ_data::formats::io::write_atomic_io(path, |f| {
         let mut w = npyz::WriteOptions::<T>::new()
             .default_dtype()
             .shape(shape)
             .writer(std::io::BufWriter::new(f))
-            .begin_nd()
-            .map_err(|e| format!("{}: {e}", tmp.display()))?;
-        w.extend(data.iter().copied())
-            .map_err(|e| format!("{}: {e}", tmp.display()))?;
-        w.finish().map_err(|e| format!("{}: {e}", tmp.display()))?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+            .begin_nd()?;
+        w.extend(data.iter().copied())?;
+        w.finish()
+    })
+    .map_err(|e| format!("{}: {e}", path.display()))
 }
 
 fn run() -> Result<(), String> {

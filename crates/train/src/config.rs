@@ -86,6 +86,105 @@ impl DataConfig {
     }
 }
 
+impl DataConfig {
+    /// Checks the augmentation settings and the sequence lists.
+    pub fn validate(&self) -> Result<(), String> {
+        for (key, v) in [
+            ("flip_prob", self.flip_prob),
+            ("mirror_prob", self.mirror_prob),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(format!("data.{key} = {v}: must be a probability in [0, 1]"));
+            }
+        }
+        for (key, (lo, hi)) in [
+            ("resize_lim", self.resize_lim),
+            ("rot_lim_deg", self.rot_lim_deg),
+        ] {
+            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                return Err(format!(
+                    "data.{key} = [{lo}, {hi}]: must be two finite numbers, the first not above the second"
+                ));
+            }
+        }
+        if self.resize_lim.0 <= -1.0 {
+            return Err(format!(
+                "data.resize_lim = [{}, {}]: the lower end must be above -1 (a positive scale)",
+                self.resize_lim.0, self.resize_lim.1
+            ));
+        }
+        for (key, list) in [
+            ("train_sequences", &self.train_sequences),
+            ("val_sequences", &self.val_sequences),
+        ] {
+            for (i, a) in list.iter().enumerate() {
+                if a.trim().is_empty() {
+                    return Err(format!("data.{key}: entry {} is empty", i + 1));
+                }
+                if list[..i].contains(a) {
+                    return Err(format!("data.{key}: `{a}` is listed twice"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Every float in `v` finite; the error names the key (`train.lr`, `model.dense.dbound[1]`).
+fn check_finite(v: &toml::Value, path: &str) -> Result<(), String> {
+    match v {
+        toml::Value::Float(f) if !f.is_finite() => {
+            Err(format!("{path} = {f}: must be a finite number"))
+        }
+        toml::Value::Table(t) => {
+            for (k, x) in t {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                check_finite(x, &p)?;
+            }
+            Ok(())
+        }
+        toml::Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                check_finite(x, &format!("{path}[{i}]"))?;
+            }
+            Ok(())
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Every key of `user` (recursively) is also in `known`, the parsed config written back.
+fn check_known_keys(user: &toml::Table, known: &toml::Table, path: &str) -> Result<(), String> {
+    for (k, v) in user {
+        let p = if path.is_empty() {
+            k.clone()
+        } else {
+            format!("{path}.{k}")
+        };
+        let Some(kv) = known.get(k) else {
+            let section = if path.is_empty() {
+                "the top level".to_string()
+            } else {
+                format!("[{path}]")
+            };
+            let mut keys: Vec<&str> = known.keys().map(String::as_str).collect();
+            keys.sort_unstable();
+            return Err(format!(
+                "unknown key `{p}` (in {section}: expected one of {})",
+                keys.join(", ")
+            ));
+        };
+        if let (toml::Value::Table(u), toml::Value::Table(kt)) = (v, kv) {
+            check_known_keys(u, kt, &p)?;
+        }
+    }
+    Ok(())
+}
+
 /// Merges `user` over `defaults` (tables recursively; any other value replaces).
 fn merge(defaults: &mut toml::Table, user: &toml::Table) {
     for (k, v) in user {
@@ -189,15 +288,38 @@ impl RunConfig {
     /// `[model.sparseocc_pp]`, `[model.sparseocc]`, `[model.dense]`) need only the fields that differ
     /// from the paper defaults: they are merged over the defaults, and the shared sizes
     /// (`num_classes`, `full_dims`, feature channels) come from `[model]`.
+    ///
+    /// Every key is checked, at every level: an unknown key (also inside the model sub-sections), a
+    /// value of the wrong type, a number that is not finite (`nan`, `inf`) or out of its range is an
+    /// error naming the key and `origin`.
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, TrainError> {
         let err = |e: String| TrainError::Config(format!("{origin}: {e}"));
-        let mut value: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        let user: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        check_finite(&toml::Value::Table(user.clone()), "").map_err(err)?;
+        let mut value = user.clone();
         fill_model_defaults(&mut value).map_err(err)?;
-        let cfg: RunConfig = toml::Value::Table(value)
-            .try_into()
-            .map_err(|e: toml::de::Error| err(e.to_string()))?;
-        cfg.validate()
-            .map_err(|e| TrainError::Config(format!("{origin}: {e}")))?;
+        let cfg: RunConfig =
+            serde_path_to_error::deserialize(toml::Value::Table(value)).map_err(|e| {
+                let path = e.path().to_string();
+                let inner = e.into_inner().to_string();
+                // toml repeats the key on a line `in \`train.lr\``: the path above says it.
+                let inner = inner
+                    .lines()
+                    .map(str::trim)
+                    .filter(|l| !l.is_empty() && !l.starts_with("in `"))
+                    .collect::<Vec<_>>()
+                    .join("; ");
+                err(if path == "." || path.is_empty() {
+                    inner.to_string()
+                } else {
+                    format!("{path}: {inner}")
+                })
+            })?;
+        // Keys the types above do not have are dropped by deserialization where a section has no
+        // `deny_unknown_fields` (the model sub-sections): every key given must survive a round trip.
+        let back = to_table(&cfg).map_err(err)?;
+        check_known_keys(&user, &back, "").map_err(err)?;
+        cfg.validate().map_err(err)?;
         Ok(cfg)
     }
 
@@ -215,8 +337,13 @@ impl RunConfig {
         toml::to_string_pretty(self).map_err(|e| TrainError::Config(e.to_string()))
     }
 
-    /// Checks sizes (model, and the image size against the encoder strides).
+    /// Checks sizes (model, and the image size against the encoder strides), the training settings
+    /// ([`TrainConfig::validate`]) and the data settings (probabilities in [0, 1], ranges ordered,
+    /// no sequence listed twice).
     pub fn validate(&self) -> Result<(), String> {
+        check_finite(&toml::Value::Table(to_table(self)?), "")?;
+        self.train.validate()?;
+        self.data.validate()?;
         self.model.validate().map_err(|e| e.to_string())?;
         let classes = self.data.format.num_classes();
         if self.model.num_classes != classes {

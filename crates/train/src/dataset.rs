@@ -23,7 +23,7 @@ use burn::tensor::TensorData;
 use occ_data::formats::nuscenes_occupancy::{self as nocc, NuscenesTables, SampleCameras};
 use occ_data::formats::occ3d::{self, Occ3dLabels};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
-use occ_data::image::{process_image, read_image, ImagePipelineConfig};
+use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineConfig};
 use occ_data::labels::LearningMap;
 use occ_eval::{EvalMask, EvalReport, Evaluator, FolderOptions, Protocol};
 use occ_geometry::{transform_point, CameraView, Mat4, VoxelGrid};
@@ -127,6 +127,30 @@ impl Sample {
     }
 }
 
+/// An image of `width` x `height` pixels must belong to the KITTI calibration `calib` (read from
+/// `calib_path`): its principal point inside the central half of the image. Otherwise an error
+/// naming both files (the image was resized or cropped without adjusting P2, or belongs to another
+/// camera).
+pub fn check_image_fits_calibration(
+    image: &Path,
+    width: usize,
+    height: usize,
+    calib_path: &Path,
+    calib: &sk::Calib,
+) -> Result<(), TrainError> {
+    let (cx, cy) = (calib.p2[0][2], calib.p2[1][2]);
+    let (w, h) = (width as f64, height as f64);
+    if !(cx > 0.25 * w && cx < 0.75 * w && cy > 0.25 * h && cy < 0.75 * h) {
+        return Err(TrainError::Data(format!(
+            "{}: image is {width}x{height} but the calibration {} puts the principal point at ({cx:.1}, {cy:.1}); \
+             the image does not belong to this calibration (or was resized without adjusting P2)",
+            image.display(),
+            calib_path.display()
+        )));
+    }
+    Ok(())
+}
+
 /// A SemanticKITTI-layout dataset.
 #[derive(Clone, Debug)]
 pub struct KittiDataset {
@@ -166,7 +190,28 @@ impl KittiDataset {
                     dir.display()
                 )));
             }
-            for frame in sk::list_stems(&dir, "png")? {
+            let images = sk::list_stems(&dir, "png")?;
+            // A labelled frame without its image would be left out of the predictions (and then
+            // reported as a missing prediction when scoring): name every such frame now.
+            let labelled = sk::list_stems(&paths.sequence_dir(seq).join("voxels"), "label")?;
+            let orphans: Vec<&String> = labelled
+                .iter()
+                .filter(|f| images.binary_search(f).is_err())
+                .collect();
+            if let Some(first) = orphans.first() {
+                return Err(TrainError::Data(format!(
+                    "{}: missing; {} labelled frame(s) of sequence {seq} have no image ({})",
+                    paths.image_2(seq, first).display(),
+                    orphans.len(),
+                    orphans
+                        .iter()
+                        .take(10)
+                        .map(|s| s.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )));
+            }
+            for frame in images {
                 frames.push(FrameRef {
                     sequence: seq.clone(),
                     frame,
@@ -225,8 +270,12 @@ impl KittiDataset {
             .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?
             .clone();
         let img_path = self.paths.image_2(&f.sequence, &f.frame);
+        let calib_path = self.paths.calib(&f.sequence);
+        let calib = sk::read_calib(&calib_path)?;
+        // The image's header against its calibration before decoding it.
+        let (w, h) = read_image_size(&img_path)?;
+        check_image_fits_calibration(&img_path, w, h, &calib_path, &calib)?;
         let img = read_image(&img_path)?;
-        let calib = sk::read_calib(&self.paths.calib(&f.sequence))?;
         let aug = match rng {
             Some(r) => self.pipeline.sample_train_aug(img.width, img.height, r),
             None => self.pipeline.test_aug(img.width, img.height),
@@ -237,7 +286,23 @@ impl KittiDataset {
         let n = self.grid.num_voxels();
         let label_p = self.paths.voxels(&f.sequence, &f.frame, "label");
         let target = if label_p.exists() {
-            let mut t = self.map.remap(&sk::read_label_raw(&label_p, n)?);
+            let raw = sk::read_label_raw(&label_p, n)?;
+            // Unlisted ids are ignored (255), as in scoring; a frame made mostly of them is not
+            // SemanticKITTI ground truth.
+            let count = raw.iter().filter(|&&r| !self.map.is_listed(r)).count();
+            if count * 2 > raw.len() {
+                let bad = raw
+                    .iter()
+                    .find(|&&r| !self.map.is_listed(r))
+                    .copied()
+                    .unwrap_or_default();
+                return Err(TrainError::Data(format!(
+                    "{}: {count} of {n} voxels have ids the SemanticKITTI learning map does not list \
+                     (e.g. {bad}); not SemanticKITTI voxel labels",
+                    label_p.display()
+                )));
+            }
+            let mut t = self.map.remap(&raw);
             let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
             if inv_p.exists() {
                 let inv = sk::read_packed_bits(&inv_p, n)?;
@@ -452,8 +517,17 @@ impl SurroundDataset {
         let mut size = (0, 0);
         for cam in &cams.cameras {
             let path = self.root.join(&cam.filename);
-            let img = read_image(&path)?;
             let (w, h) = (cam.view.camera.width, cam.view.camera.height);
+            // The header against the tables before decoding.
+            let (iw, ih) = read_image_size(&path)?;
+            if (iw, ih) != (w, h) {
+                return Err(TrainError::Data(format!(
+                    "{}: image is {iw}x{ih} but its sample_data ({}) says {w}x{h}",
+                    path.display(),
+                    cam.sample_data_token
+                )));
+            }
+            let img = read_image(&path)?;
             if (img.width, img.height) != (w, h) {
                 return Err(TrainError::Data(format!(
                     "{}: image is {}x{} but its sample_data ({}) says {w}x{h}",

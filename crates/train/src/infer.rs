@@ -2,11 +2,13 @@
 //! class grids written in the dataset's own layout (SemanticKITTI submission `.label`, Occ3D
 //! `labels.npz`, nuScenes-Occupancy sparse `.npy`).
 
-use crate::dataset::{camera_input, collate, Dataset, FrameRef, Sample};
+use crate::dataset::{
+    camera_input, check_image_fits_calibration, collate, Dataset, FrameRef, Sample,
+};
 use crate::mirror::mirror_sample_y;
 use crate::TrainError;
 use occ_data::formats::semantic_kitti as sk;
-use occ_data::image::{process_image, read_image, ImagePipelineConfig};
+use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineConfig};
 use occ_geometry::VoxelGrid;
 use occ_model::OccNet;
 use occ_sparse::SparseConvBackend;
@@ -177,20 +179,11 @@ pub fn load_single_image(
     calib: &Path,
     pipeline: &ImagePipelineConfig,
 ) -> Result<Sample, TrainError> {
-    let img = read_image(image)?;
     let cal = sk::read_calib(calib)?;
-    let (cx, cy) = (cal.p2[0][2], cal.p2[1][2]);
-    let (w, h) = (img.width as f64, img.height as f64);
-    if !(cx > 0.25 * w && cx < 0.75 * w && cy > 0.25 * h && cy < 0.75 * h) {
-        return Err(TrainError::Data(format!(
-            "{}: image is {}x{} but the calibration {} puts the principal point at ({cx:.1}, {cy:.1}); \
-             the image does not belong to this calibration (or was resized without adjusting P2)",
-            image.display(),
-            img.width,
-            img.height,
-            calib.display()
-        )));
-    }
+    // The header against the calibration (and the size limit) before decoding.
+    let (w, h) = read_image_size(image)?;
+    check_image_fits_calibration(image, w, h, calib, &cal)?;
+    let img = read_image(image)?;
     let aug = pipeline.test_aug(img.width, img.height);
     let processed = process_image(&img, &aug)?;
     let view = cal.camera_view(img.width, img.height).augmented(&aug);

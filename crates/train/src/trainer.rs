@@ -61,6 +61,51 @@ pub struct TrainConfig {
     pub augment: bool,
 }
 
+impl TrainConfig {
+    /// Checks every setting: counts positive, every number finite and in its range. Errors name the
+    /// key (`train.clip_norm`) and the value.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = [
+            ("steps", self.steps),
+            ("batch_size", self.batch_size),
+            ("checkpoint_every", self.checkpoint_every),
+            ("log_every", self.log_every),
+        ];
+        for (key, v) in positive {
+            if v == 0 {
+                return Err(format!("train.{key} = 0: must be at least 1"));
+            }
+        }
+        let ranges: [(&str, f64, &str, fn(f64) -> bool); 4] = [
+            ("lr", self.lr, "a finite number > 0", |v| v > 0.0),
+            (
+                "weight_decay",
+                self.weight_decay,
+                "a finite number >= 0",
+                |v| v >= 0.0,
+            ),
+            (
+                "min_lr_ratio",
+                self.min_lr_ratio,
+                "a finite number in [0, 1]",
+                |v| (0.0..=1.0).contains(&v),
+            ),
+            (
+                "clip_norm",
+                self.clip_norm,
+                "a finite number > 0 (the largest gradient norm)",
+                |v| v > 0.0,
+            ),
+        ];
+        for (key, v, what, ok) in ranges {
+            if !v.is_finite() || !ok(v) {
+                return Err(format!("train.{key} = {v}: must be {what}"));
+            }
+        }
+        Ok(())
+    }
+}
+
 fn one() -> usize {
     1
 }
@@ -149,6 +194,10 @@ impl CheckpointPaths {
     pub fn state(&self) -> PathBuf {
         self.dir.join("state.json")
     }
+    /// The previous checkpoint, kept while a save swaps the new one in (`RUN/checkpoint.old`).
+    pub fn old_dir(&self) -> PathBuf {
+        self.dir.with_extension("old")
+    }
 }
 
 /// Loads the samples of `idx` in parallel.
@@ -196,14 +245,26 @@ where
     B: AutodiffBackend,
     M: AutodiffModule<B> + OccNetwork<B>,
 {
-    if cfg.steps == 0 || cfg.batch_size == 0 || cfg.lr.is_nan() || cfg.lr <= 0.0 {
-        return Err(TrainError::Config(format!(
-            "steps ({}), batch_size ({}) and lr ({}) must be positive",
-            cfg.steps, cfg.batch_size, cfg.lr
-        )));
-    }
-    std::fs::create_dir_all(run).map_err(io_err(run))?;
+    cfg.validate().map_err(TrainError::Config)?;
+    // Before anything is written: a resume needs a checkpoint to resume from.
     let ck = CheckpointPaths::new(run);
+    let resume_state = if resume {
+        match recover_checkpoint(run)? {
+            Some(state) => Some(state),
+            None => {
+                return Err(TrainError::Checkpoint(format!(
+                    "{}: no checkpoint to resume from (no {} with {}); drop --resume to start a new run",
+                    run.display(),
+                    ck.dir.display(),
+                    ck.state().file_name().unwrap_or_default().to_string_lossy()
+                )))
+            }
+        }
+    } else {
+        None
+    };
+    std::fs::create_dir_all(run).map_err(io_err(run))?;
+    remove_stale_temporaries(&ck.dir);
     let recorder = BinFileRecorder::<FullPrecisionSettings>::new();
     let mut opt_decay = AdamWConfig::new()
         .with_weight_decay(cfg.weight_decay as f32)
@@ -216,18 +277,26 @@ where
     let mut start = 0usize;
     let mut prior_seconds = 0.0;
     let mut resumed_from = None;
-    if resume && ck.state().exists() {
-        let text = std::fs::read_to_string(ck.state()).map_err(io_err(&ck.state()))?;
-        let state: TrainState = serde_json::from_str(&text)
-            .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", ck.state().display())))?;
-        model = occ_model::load_checked(model, &ck.model(), device)
-            .map_err(|e| TrainError::Checkpoint(e.to_string()))?;
+    if let Some(state) = resume_state {
+        model = load_weights(model, &ck.model(), device)?;
         for (which, opt) in [("decay", &mut opt_decay), ("plain", &mut opt_plain)] {
             let p = ck.optim(which);
-            let rec = recorder
-                .load(p.clone(), device)
-                .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", p.display())))?;
+            let rec = recorder.load(p.clone(), device).map_err(|e| {
+                TrainError::Checkpoint(format!(
+                    "{} (the optimizer state)",
+                    record_error_text(&p.with_extension("bin"), &e.to_string())
+                ))
+            })?;
             *opt = std::mem::replace(opt, AdamWConfig::new().init::<B, M>()).load_record(rec);
+        }
+        if state.step > cfg.steps {
+            return Err(TrainError::Checkpoint(format!(
+                "{}: the checkpoint is at step {} but the run has {} steps; give --steps {} or more",
+                ck.state().display(),
+                state.step,
+                cfg.steps,
+                state.step
+            )));
         }
         start = state.step;
         prior_seconds = state.train_seconds;
@@ -241,14 +310,14 @@ where
         warmup_start_ratio: 0.1,
     };
     let log_path = run.join("train_log.csv");
+    // The log holds each step once: a fresh run starts it anew; a resumed run keeps the header and
+    // the rows up to the checkpoint's step (rows logged after it, by the interrupted process, are
+    // redone and logged again).
+    truncate_log(&log_path, start)?;
     let mut log = std::fs::OpenOptions::new()
-        .create(true)
         .append(true)
         .open(&log_path)
         .map_err(io_err(&log_path))?;
-    if start == 0 {
-        writeln!(log, "step,lr,loss,grad_norm,seconds,terms").map_err(io_err(&log_path))?;
-    }
     let t_run = Instant::now();
     let mut losses = Vec::new();
     for step in start..cfg.steps {
@@ -362,30 +431,195 @@ where
     O1: Optimizer<M, B>,
     O2: Optimizer<M, B>,
 {
-    // Write into a temporary folder, then swap it in: an interrupted save never leaves a torn checkpoint.
-    let tmp = ck.dir.with_extension("tmp");
-    let _ = std::fs::remove_dir_all(&tmp);
+    // Write into a fresh temporary folder, then swap it in: an interrupted save never leaves a torn
+    // checkpoint. A kill between the two renames leaves only `checkpoint.old`, the previous complete
+    // checkpoint, which [`recover_checkpoint`] puts back.
+    let tmp = occ_data::formats::io::temp_sibling(&ck.dir);
     std::fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
     let t = CheckpointPaths { dir: tmp.clone() };
-    model
-        .clone()
-        .save_file(t.model(), recorder)
-        .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.model().display())))?;
-    recorder
-        .record(opt_decay.to_record(), t.optim("decay"))
-        .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.optim("decay").display())))?;
-    recorder
-        .record(opt_plain.to_record(), t.optim("plain"))
-        .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.optim("plain").display())))?;
-    let text =
-        serde_json::to_string_pretty(&state).map_err(|e| TrainError::Checkpoint(e.to_string()))?;
-    std::fs::write(t.state(), text).map_err(io_err(&t.state()))?;
-    let old = ck.dir.with_extension("old");
-    let _ = std::fs::remove_dir_all(&old);
+    let result = (|| -> Result<(), TrainError> {
+        model
+            .clone()
+            .save_file(t.model(), recorder)
+            .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.model().display())))?;
+        recorder
+            .record(opt_decay.to_record(), t.optim("decay"))
+            .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.optim("decay").display())))?;
+        recorder
+            .record(opt_plain.to_record(), t.optim("plain"))
+            .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", t.optim("plain").display())))?;
+        // The state is written last: a folder with state.json is complete.
+        let text = serde_json::to_string_pretty(&state)
+            .map_err(|e| TrainError::Checkpoint(e.to_string()))?;
+        occ_data::formats::io::write_atomic(&t.state(), text.as_bytes())?;
+        Ok(())
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    let old = ck.old_dir();
     if ck.dir.exists() {
+        let _ = std::fs::remove_dir_all(&old);
         std::fs::rename(&ck.dir, &old).map_err(io_err(&ck.dir))?;
     }
     std::fs::rename(&tmp, &ck.dir).map_err(io_err(&ck.dir))?;
     let _ = std::fs::remove_dir_all(&old);
+    Ok(())
+}
+
+/// A burn record error as one plain sentence: burn's "Unable to load record" carries nested,
+/// escaped debug text and a hint about format versions that does not apply to a damaged file.
+pub fn record_error_text(path: &Path, err: &str) -> String {
+    let size = std::fs::metadata(path)
+        .map(|m| format!(", {} bytes", m.len()))
+        .unwrap_or_default();
+    if err.contains("UnexpectedEof") || err.contains("failed to fill whole buffer") {
+        format!(
+            "{}: truncated or damaged (ends before the record is complete{size})",
+            path.display()
+        )
+    } else if err.contains("Unable to load record") || err.contains("Unknown(") {
+        format!(
+            "{}: not a readable burn record (damaged, or not written by sparseocc{size})",
+            path.display()
+        )
+    } else {
+        format!("{}: {}", path.display(), first_line(err))
+    }
+}
+
+/// Loads weights saved by [`train`] into `model` (shapes checked against the config by
+/// [`occ_model::load_checked`]); a damaged file is an error naming it in one line.
+pub fn load_weights<B: burn::tensor::backend::Backend, M: burn::module::Module<B>>(
+    model: M,
+    path: &Path,
+    device: &B::Device,
+) -> Result<M, TrainError> {
+    let bin = path.with_extension("bin");
+    let file = if path.extension().is_some() {
+        path
+    } else {
+        bin.as_path()
+    };
+    if !file.is_file() {
+        return Err(TrainError::Checkpoint(format!(
+            "{}: missing (no weights in the checkpoint)",
+            file.display()
+        )));
+    }
+    occ_model::load_checked(model, path, device).map_err(|e| {
+        let text = e.to_string();
+        if text.contains("Unable to load record") || text.contains("Unknown(") {
+            TrainError::Checkpoint(record_error_text(file, &text))
+        } else {
+            TrainError::Checkpoint(text)
+        }
+    })
+}
+
+fn first_line(s: &str) -> &str {
+    s.lines().next().unwrap_or_default()
+}
+
+fn read_state(path: &Path) -> Result<TrainState, TrainError> {
+    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    serde_json::from_str(&text).map_err(|e| {
+        TrainError::Checkpoint(format!(
+            "{}: not a training state ({e}); the checkpoint is damaged",
+            path.display()
+        ))
+    })
+}
+
+/// The checkpoint of `run` to resume from, after repairing an interrupted save: with `checkpoint/`
+/// complete (its `state.json` written), that one (a leftover `checkpoint.old` is removed); with only
+/// `checkpoint.old` left (a kill between the two renames of a save), that previous checkpoint is
+/// moved back to `checkpoint/`. `None` when the run has no checkpoint at all.
+pub fn recover_checkpoint(run: &Path) -> Result<Option<TrainState>, TrainError> {
+    let ck = CheckpointPaths::new(run);
+    let old = ck.old_dir();
+    if ck.state().is_file() {
+        let state = read_state(&ck.state())?;
+        if old.exists() {
+            let _ = std::fs::remove_dir_all(&old);
+        }
+        return Ok(Some(state));
+    }
+    let old_ck = CheckpointPaths { dir: old.clone() };
+    if old_ck.state().is_file() {
+        let state = read_state(&old_ck.state())?;
+        if ck.dir.exists() {
+            // An incomplete checkpoint/ (no state.json) is never written by `save_checkpoint`;
+            // keep it aside rather than deleting it.
+            let aside = occ_data::formats::io::temp_sibling(&ck.dir.with_extension("incomplete"));
+            std::fs::rename(&ck.dir, &aside).map_err(io_err(&ck.dir))?;
+        }
+        std::fs::rename(&old, &ck.dir).map_err(io_err(&old))?;
+        return Ok(Some(state));
+    }
+    if ck.dir.exists() {
+        return Err(TrainError::Checkpoint(format!(
+            "{}: missing; the checkpoint in {} is incomplete",
+            ck.state().display(),
+            ck.dir.display()
+        )));
+    }
+    Ok(None)
+}
+
+/// Removes the temporary checkpoint folders left by killed saves (`.checkpoint.tmp-<pid>-...` of
+/// processes that are gone; on systems without `/proc`, none are removed).
+fn remove_stale_temporaries(ck_dir: &Path) {
+    let (Some(parent), Some(name)) = (ck_dir.parent(), ck_dir.file_name()) else {
+        return;
+    };
+    let name = name.to_string_lossy();
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    let proc = Path::new("/proc/self");
+    if !proc.exists() {
+        return;
+    }
+    let prefix = format!(".{name}.tmp-");
+    for e in entries.flatten() {
+        let f = e.file_name();
+        let Some(rest) = f.to_str().and_then(|f| f.strip_prefix(&prefix)) else {
+            continue;
+        };
+        let Some(pid) = rest.split('-').next().and_then(|p| p.parse::<u32>().ok()) else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+/// Makes `train_log.csv` the log of steps `1..=step`: a fresh log (header only) for step 0, else
+/// the header and the rows of steps up to `step` of the existing log (rewritten atomically).
+fn truncate_log(path: &Path, step: usize) -> Result<(), TrainError> {
+    const HEADER: &str = "step,lr,loss,grad_norm,seconds,terms";
+    let mut text = format!("{HEADER}\n");
+    if step > 0 {
+        match std::fs::read_to_string(path) {
+            Ok(old) => {
+                for line in old.lines() {
+                    let Some(s) = line.split(',').next().and_then(|s| s.parse::<usize>().ok())
+                    else {
+                        continue;
+                    };
+                    if s <= step {
+                        text.push_str(line);
+                        text.push('\n');
+                    }
+                }
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(io_err(path)(e)),
+        }
+    }
+    occ_data::formats::io::write_atomic(path, text.as_bytes())?;
     Ok(())
 }

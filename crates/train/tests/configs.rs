@@ -40,3 +40,143 @@ fn every_shipped_config_parses_and_validates() {
     }
     assert!(n >= 6, "only {n} configs in {}", dir.display());
 }
+
+/// Bad settings are refused at load time, each with an error naming the file and the key: numbers
+/// out of range or not finite, values of the wrong type, and unknown keys at every nesting level.
+#[test]
+fn bad_settings_are_errors_naming_the_file_and_the_key() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synthetic_tiny.toml");
+    let base = std::fs::read_to_string(&path).unwrap();
+    // (what to replace, replacement, substrings the error must contain)
+    let cases: &[(&str, &str, &[&str])] = &[
+        (
+            "clip_norm = 35.0",
+            "clip_norm = -1.0",
+            &["train.clip_norm", "-1"],
+        ),
+        (
+            "clip_norm = 35.0",
+            "clip_norm = nan",
+            &["train.clip_norm", "NaN"],
+        ),
+        ("clip_norm = 35.0", "clip_norm = 0.0", &["train.clip_norm"]),
+        (
+            "min_lr_ratio = 0.05",
+            "min_lr_ratio = nan",
+            &["train.min_lr_ratio"],
+        ),
+        (
+            "min_lr_ratio = 0.05",
+            "min_lr_ratio = 1.5",
+            &["train.min_lr_ratio", "[0, 1]"],
+        ),
+        ("lr = 3e-3", "lr = inf", &["train.lr", "finite"]),
+        ("lr = 3e-3", "lr = -1e-3", &["train.lr"]),
+        ("lr = 3e-3", "lr = \"fast\"", &["train.lr", "fast"]),
+        (
+            "weight_decay = 0.01",
+            "weight_decay = nan",
+            &["train.weight_decay"],
+        ),
+        (
+            "weight_decay = 0.01",
+            "weight_decay = -0.5",
+            &["train.weight_decay"],
+        ),
+        ("steps = 750", "steps = 0", &["train.steps"]),
+        ("steps = 750", "steps = -3", &["train.steps"]),
+        ("log_every = 5", "log_every = 0", &["train.log_every"]),
+        (
+            "checkpoint_every = 50",
+            "checkpoint_every = 0",
+            &["train.checkpoint_every"],
+        ),
+        ("flip_prob = 0.0", "flip_prob = 1.5", &["data.flip_prob"]),
+        (
+            "mirror_prob = 0.5",
+            "mirror_prob = nan",
+            &["data.mirror_prob"],
+        ),
+        (
+            "rot_lim_deg = [0.0, 0.0]",
+            "rot_lim_deg = [5.0, -5.0]",
+            &["data.rot_lim_deg"],
+        ),
+        (
+            "resize_lim = [0.0, 0.0]",
+            "resize_lim = [-1.5, 0.0]",
+            &["data.resize_lim"],
+        ),
+        (
+            "val_sequences = [\"08\"]",
+            "val_sequences = [\"08\", \"08\"]",
+            &["data.val_sequences", "08", "twice"],
+        ),
+        (
+            "dbound = [2.0, 58.0, 1.0]\npropagator",
+            "dbound = [2.0, nan, 1.0]\npropagator",
+            &["model.sparseocc.dbound[1]", "finite"],
+        ),
+        (
+            "dca_offset_init_scale = 0.25",
+            "dca_offset_init_scale = inf",
+            &["model.sparseocc_pp.dca_offset_init_scale"],
+        ),
+        // Unknown keys at every level.
+        (
+            "embed_dim = 32",
+            "embed_dim = 32\nembed_dims = 32",
+            &["model.sparseocc_pp.embed_dims", "unknown"],
+        ),
+        (
+            "depth = 18",
+            "depth = 18\nwidth = 3",
+            &["model.encoder.resnet.width", "unknown"],
+        ),
+        (
+            "out_channels = 32",
+            "out_channels = 32\nnorm = 1",
+            &["model.encoder.fpn.norm", "unknown"],
+        ),
+        (
+            "num_queries = 20",
+            "num_queries = 20\nqueries = 1",
+            &["model.sparseocc.queries", "unknown"],
+        ),
+        (
+            "encoder_channels = [32, 32, 32]",
+            "encoder_channels = [32, 32, 32]\nlayers = 2",
+            &["model.dense.layers", "unknown"],
+        ),
+        (
+            "lss_level = 2",
+            "lss_level = 2\nlss_levels = 2",
+            &["lss_levels"],
+        ),
+        ("[train]", "[train]\nlearning_rate = 1", &["learning_rate"]),
+        ("[data]", "[data]\nformat2 = 1", &["format2"]),
+        ("[data]", "[extra]\nx = 1\n[data]", &["extra"]),
+    ];
+    for (from, to, want) in cases {
+        assert!(base.contains(from), "the base config has no `{from}`");
+        let text = base.replacen(from, to, 1);
+        let e = match RunConfig::from_toml(&text, "bad-config.toml") {
+            Ok(_) => panic!("`{to}` was accepted"),
+            Err(e) => e.to_string(),
+        };
+        assert!(
+            e.contains("bad-config.toml"),
+            "`{to}`: error without the file: {e}"
+        );
+        for w in *want {
+            assert!(e.contains(w), "`{to}`: error without `{w}`: {e}");
+        }
+    }
+    // The base itself is fine, and a value equal to the default is not mistaken for an unknown key.
+    RunConfig::from_toml(&base, "base").unwrap();
+    RunConfig::from_toml(
+        &base.replace("embed_dim = 32", "embed_dim = 32\nnum_classes = 20"),
+        "base",
+    )
+    .unwrap();
+}

@@ -142,35 +142,17 @@ pub(crate) fn image_to_canvas(img: &RgbImage) -> Result<Canvas, VizError> {
     })
 }
 
-/// Create `path` through a temporary file in the same folder, renamed into place only after
-/// `write` succeeded (the temporary file is removed on failure).
+/// Create `path` through a fresh temporary file in the same folder, renamed into place only after
+/// `write` succeeded (the temporary file is removed on failure): the project's one atomic writer,
+/// [`occ_data::formats::io::write_atomic_io`].
 pub(crate) fn write_atomically(
     path: &Path,
-    write: impl FnOnce(File) -> std::io::Result<()>,
+    write: impl FnOnce(&mut File) -> std::io::Result<()>,
 ) -> Result<(), VizError> {
-    let io_err = |source| VizError::Io {
+    occ_data::formats::io::write_atomic_io(path, write).map_err(|source| VizError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let name = path.file_name().ok_or_else(|| {
-        io_err(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            "path has no file name",
-        ))
-    })?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(name);
-    tmp_name.push(format!(".tmp{}", std::process::id()));
-    let tmp = path.with_file_name(tmp_name);
-    let result = File::create(&tmp).and_then(|f| {
-        write(f)?;
-        std::fs::rename(&tmp, path)
-    });
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(io_err(e));
-    }
-    Ok(())
+    })
 }
 
 /// Draw `text` into `img` with the built-in 5x7 bitmap font (`A-Z a-z 0-9` and common

@@ -35,36 +35,78 @@ pub fn check_len(path: &Path, actual: usize, expected: usize) -> Result<(), Data
     Ok(())
 }
 
-fn temp_path(path: &Path) -> PathBuf {
+/// A fresh name beside `path` for a temporary file or folder: `.<name>.tmp-<pid>-<n>-<random>`,
+/// unique across processes (pid), threads and calls (a process-wide counter), and across pid reuse
+/// (random bits). Writers create it, fill it, and rename it over `path`.
+pub fn temp_sibling(path: &Path) -> PathBuf {
+    use std::hash::{BuildHasher, Hasher};
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    // `RandomState` is seeded from the OS once per process; mixing in the time and the counter
+    // gives different bits on every call.
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(n);
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0),
+    );
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
-    let tmp = format!(".{name}.tmp-{}", std::process::id());
+    let tmp = format!(".{name}.tmp-{}-{n}-{:016x}", std::process::id(), h.finish());
     match path.parent() {
         Some(p) => p.join(tmp),
         None => PathBuf::from(tmp),
     }
 }
 
-/// Write `bytes` to `path` atomically: write `.<name>.tmp-<pid>` beside it, flush, rename.
+/// True for a name made by [`temp_sibling`] for `name` (`.<name>.tmp-...`).
+pub fn is_temp_sibling_of(candidate: &std::ffi::OsStr, name: &str) -> bool {
+    candidate
+        .to_str()
+        .is_some_and(|c| c.starts_with(&format!(".{name}.tmp-")))
+}
+
+/// Create `path` atomically: `write` fills a fresh temporary file beside it ([`temp_sibling`]),
+/// which is flushed to disk and renamed over `path` only when `write` succeeded; on any failure the
+/// temporary file is removed and `path` is left as it was. Concurrent writers of the same `path`
+/// never share a temporary file, so `path` is always one writer's complete output.
 /// The parent folder must exist.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
-    let tmp = temp_path(path);
-    let result = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        Ok(())
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(DataError::io(path, e));
+pub fn write_atomic_io(
+    path: &Path,
+    write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    if path.file_name().is_none() {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "path has no file name",
+        ));
     }
-    std::fs::rename(&tmp, path).map_err(|e| {
+    let tmp = temp_sibling(path);
+    let result = (|| -> std::io::Result<()> {
+        let mut f = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)?;
+        write(&mut f)?;
+        f.flush()?;
+        f.sync_all()?;
+        drop(f);
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
-        DataError::io(path, e)
-    })
+    }
+    result
+}
+
+/// Write `bytes` to `path` atomically ([`write_atomic_io`]). The parent folder must exist.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
+    write_atomic_io(path, |f| f.write_all(bytes)).map_err(|e| DataError::io(path, e))
 }
 
 /// Create a folder and its parents.
