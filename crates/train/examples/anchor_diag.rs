@@ -52,12 +52,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let dca = &a.stages[0].dca;
         let (off, _) = dca.sampling(q);
         let [n, m, l, p, _] = off.dims();
-        let v: Vec<f32> = off.into_data().convert::<f32>().to_vec().map_err(|e| format!("{e:?}"))?;
+        let v: Vec<f32> = off
+            .into_data()
+            .convert::<f32>()
+            .to_vec()
+            .map_err(|e| format!("{e:?}"))?;
         let b: Vec<f32> = dca
             .sampling_offsets
             .bias
             .as_ref()
-            .map(|b| b.val().into_data().convert::<f32>().to_vec().unwrap_or_default())
+            .map(|b| {
+                b.val()
+                    .into_data()
+                    .convert::<f32>()
+                    .to_vec()
+                    .unwrap_or_default()
+            })
             .unwrap_or_default();
         for lv in 0..l {
             let (mut s, mut sb, mut mx) = (0.0f64, 0.0f64, 0.0f64);
