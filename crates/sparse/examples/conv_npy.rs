@@ -17,7 +17,7 @@ use npyz::WriterBuilder;
 use occ_sparse::backend::sparse_conv;
 use occ_sparse::kernel_map::{conv_map, MapKind};
 use occ_sparse::{ConvGeometry, CoordSet, SparseTensor};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -58,7 +58,7 @@ fn read_npy<T: npyz::Deserialize>(path: &PathBuf) -> Result<(Vec<T>, Vec<usize>)
 }
 
 fn write_npy<T: npyz::Serialize + npyz::AutoSerialize + Copy>(
-    path: &PathBuf,
+    path: &Path,
     data: &[T],
     shape: &[u64],
 ) -> Result<(), String> {

@@ -76,7 +76,8 @@ impl TrainConfig {
                 return Err(format!("train.{key} = 0: must be at least 1"));
             }
         }
-        let ranges: [(&str, f64, &str, fn(f64) -> bool); 4] = [
+        type Range = (&'static str, f64, &'static str, fn(f64) -> bool);
+        let ranges: [Range; 4] = [
             ("lr", self.lr, "a finite number > 0", |v| v > 0.0),
             (
                 "weight_decay",
