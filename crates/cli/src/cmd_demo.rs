@@ -16,7 +16,8 @@ use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
 use occ_data::synthetic::{self, Preset, SynthConfig};
 use occ_eval::{
-    score_semantic_kitti_folder, EvalReport, FolderOptions, SEMANTIC_KITTI_GROUND_CLASSES,
+    score_semantic_kitti_folder, semantic_kitti_recall_by_visibility, EvalReport, FolderOptions,
+    VisibilityRecall, SEMANTIC_KITTI_GROUND_CLASSES,
 };
 use occ_model::ModelKind;
 use occ_train::RunConfig;
@@ -108,6 +109,23 @@ fn prior_baseline(
             ..Default::default()
         },
     )?)
+}
+
+/// `non_ground_recall_by_visibility` of summary.json: the recall of each part (null when empty) and
+/// the share of the valid non-ground voxels in it.
+fn visibility_json(v: &VisibilityRecall) -> serde_json::Value {
+    let total = v.total().voxels.max(1) as f64;
+    let part = |c: occ_eval::RecallCount| {
+        serde_json::json!({
+            "recall": nan_null(c.recall()),
+            "share_of_voxels": c.voxels as f64 / total,
+        })
+    };
+    serde_json::json!({
+        "out_of_view": part(v.out_of_view),
+        "in_view_seen": part(v.in_view_seen),
+        "in_view_unseen": part(v.in_view_unseen),
+    })
 }
 
 /// A metric for JSON: `null` when it is undefined (NaN), as the evaluation reports write them.
@@ -204,6 +222,18 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         }
     }
     let val_names: Vec<String> = val.iter().map(|s| s.0.clone()).collect();
+    let by_view = |root: &Path| {
+        semantic_kitti_recall_by_visibility(
+            &data,
+            root,
+            &val_names,
+            &grid,
+            synth.image_size(),
+            &SEMANTIC_KITTI_GROUND_CLASSES,
+        )
+    };
+    let vis_model = by_view(&pred_root)?;
+    let vis_prior = by_view(&args.out.join("prior_predictions"))?;
     let summary_json = serde_json::json!({
         "model": cfg.model.kind.name(),
         "iou": report.iou,
@@ -212,6 +242,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         "recall": report.recall,
         "per_class": report.per_class,
         "non_ground_recall": nan_null(report.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES)),
+        "non_ground_recall_by_visibility": visibility_json(&vis_model),
         "frames": report.frames,
         "train_seconds": train_seconds,
         "train_steps": outcome.summary.steps,
@@ -225,6 +256,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             "miou": prior.miou,
             "per_class": prior.per_class,
             "non_ground_recall": nan_null(prior.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES)),
+            "non_ground_recall_by_visibility": visibility_json(&vis_prior),
         },
         "synth_frames": summary.frames,
         "renders": renders,
@@ -241,6 +273,16 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         prior.iou,
         prior.miou,
         prior.non_ground_recall(&SEMANTIC_KITTI_GROUND_CLASSES),
+    );
+    let r = |c: occ_eval::RecallCount| c.recall();
+    eprintln!(
+        "      non-ground recall by visibility (share of the voxels): in view and seen {:.3} ({:.2}), in view unseen {:.3} ({:.2}), out of view {:.3} ({:.2})",
+        r(vis_model.in_view_seen),
+        vis_model.in_view_seen.voxels as f64 / vis_model.total().voxels.max(1) as f64,
+        r(vis_model.in_view_unseen),
+        vis_model.in_view_unseen.voxels as f64 / vis_model.total().voxels.max(1) as f64,
+        r(vis_model.out_of_view),
+        vis_model.out_of_view.voxels as f64 / vis_model.total().voxels.max(1) as f64,
     );
     eprintln!(
         "done in {:.1} s; summary in {}",
