@@ -163,7 +163,11 @@ pub fn run(args: &InferArgs) -> Result<()> {
             if seqs.is_empty() {
                 bail!("--sequences is required (the config has no val_sequences)");
             }
-            let ds = Dataset::open(data, &cfg.data, &seqs, &[])?;
+            let mut ds = Dataset::open(data, &cfg.data, &seqs, &[])?;
+            ds.set_load_points(cfg.reads_lidar_at_test());
+            let pb = progress::bar(ds.len() as u64, "check data");
+            ds.check_all(&mut progress::callback(&pb))?;
+            pb.finish_and_clear();
             if ds.grid().dims != grid.dims {
                 bail!(
                     "{}: dataset grid {:?} but the model predicts {:?}",

@@ -142,6 +142,16 @@ pub fn run_with(
             cfg.model.full_dims
         );
     }
+    // Every frame's headers and file sizes, of the training and the validation frames, before the
+    // first step (a bad file otherwise stops the run when that frame comes up).
+    let pb = progress::bar(ds.len() as u64, "check data");
+    ds.check_all(&mut progress::callback(&pb))?;
+    if validate && !cfg.data.val_sequences.is_empty() {
+        let mut val = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
+        val.set_load_points(cfg.reads_lidar_at_test());
+        val.check_all(&mut progress::callback(&pb))?;
+    }
+    pb.finish_and_clear();
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let toml_path = out.join("config.toml");
     crate::util::write_file(&toml_path, cfg.to_toml()?.as_bytes())?;
@@ -232,10 +242,7 @@ pub fn validate_on(
     pred_root: &Path,
 ) -> Result<(Report, f64)> {
     let mut ds = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
-    // Only the depth-oracle diagnostic reads the LiDAR scan at test time.
-    ds.set_load_points(
-        cfg.model.kind == ModelKind::SparseOccPP && cfg.model.pp_config().depth_oracle,
-    );
+    ds.set_load_points(cfg.reads_lidar_at_test());
     let pb = progress::bar(ds.len() as u64, "predict");
     let written = predict_dataset(
         model,

@@ -272,6 +272,12 @@ fn bad_input_table() {
     let data_noimg = root.join("data_noimg");
     copy_dir(&data, &data_noimg);
     std::fs::remove_file(data_noimg.join("sequences/08/image_2/000000.png")).unwrap();
+    // A validation frame whose label file is cut short.
+    let data_trunc = root.join("data_trunc");
+    copy_dir(&data, &data_trunc);
+    let trunc = data_trunc.join("sequences/08/voxels/000000.label");
+    let full = std::fs::read(&trunc).unwrap();
+    std::fs::write(&trunc, &full[..full.len() - 100]).unwrap();
     // Ground truth with ids outside the learning map, and a ground truth that is a folder.
     let gt_unknown = root.join("gt_unknown");
     copy_dir(&data, &gt_unknown);
@@ -564,11 +570,37 @@ fn bad_input_table() {
             ]),
             status: 1,
             want: vec![s("000000.png"), s("100000x100000")],
-            absent: vec![
-                out.join("t_huge/summary.json"),
-                out.join("t_huge/checkpoint"),
-            ],
+            // Found by the check of every frame before the first step: nothing is written.
+            absent: vec![out.join("t_huge")],
         },
+        // Every training and validation frame is checked before the first step: a truncated label
+        // of the validation street stops the run before anything is written.
+        Case {
+            name: "train with a truncated validation label",
+            args: os(&[
+                &"train",
+                &"--config",
+                &cfg,
+                &"--data",
+                &data_trunc,
+                &"--out",
+                &out.join("t_trunc"),
+                &"--sequences",
+                &"00",
+                &"--val-sequences",
+                &"08",
+            ]),
+            status: 1,
+            want: vec![s("08/voxels/000000.label"), s("bytes")],
+            absent: vec![out.join("t_trunc")],
+        },
+        infer_data(
+            "infer --data with a truncated label",
+            &data_trunc,
+            "08",
+            vec![s("000000.label"), s("bytes")],
+            "i8",
+        ),
         // Eval: contradicting options and bad ground truth.
         eval(
             "duplicate sequences",

@@ -151,6 +151,25 @@ pub fn check_image_fits_calibration(
     Ok(())
 }
 
+/// Length of `path` in bytes (an error naming it when it cannot be read).
+fn file_len(path: &Path) -> Result<u64, TrainError> {
+    std::fs::metadata(path)
+        .map(|m| m.len())
+        .map_err(|e| TrainError::Data(format!("{}: {e}", path.display())))
+}
+
+/// `path` must be `expected` bytes long (`what` it holds, for the message).
+fn check_file_len(path: &Path, expected: u64, what: &str) -> Result<(), TrainError> {
+    let len = file_len(path)?;
+    if len != expected {
+        return Err(TrainError::Data(format!(
+            "{}: {len} bytes, but {what} of this grid take {expected}",
+            path.display()
+        )));
+    }
+    Ok(())
+}
+
 /// A SemanticKITTI-layout dataset.
 #[derive(Clone, Debug)]
 pub struct KittiDataset {
@@ -256,6 +275,43 @@ impl KittiDataset {
     /// The full-resolution label grid.
     pub fn grid(&self) -> VoxelGrid {
         self.grid
+    }
+
+    /// What [`Self::load`] would refuse in frame `i`, found without decoding it: the sequence's
+    /// calibration, the image header (size limit, against the calibration), and the sizes of the
+    /// label, `.invalid` and (with `load_points`) velodyne files. `Err` names the file and the problem.
+    pub fn check_frame(&self, i: usize) -> Result<(), TrainError> {
+        let f = self
+            .frames
+            .get(i)
+            .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?;
+        let img_path = self.paths.image_2(&f.sequence, &f.frame);
+        let calib_path = self.paths.calib(&f.sequence);
+        let calib = sk::read_calib(&calib_path)?;
+        let (w, h) = read_image_size(&img_path)?;
+        check_image_fits_calibration(&img_path, w, h, &calib_path, &calib)?;
+        let n = self.grid.num_voxels() as u64;
+        let label_p = self.paths.voxels(&f.sequence, &f.frame, "label");
+        if label_p.exists() {
+            check_file_len(&label_p, 2 * n, "uint16 voxel labels")?;
+            let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
+            if inv_p.exists() {
+                check_file_len(&inv_p, n.div_ceil(8), "bit-packed voxel mask")?;
+            }
+        }
+        if self.load_points {
+            let p = self.paths.velodyne(&f.sequence, &f.frame);
+            if p.exists() {
+                let len = file_len(&p)?;
+                if len % 16 != 0 {
+                    return Err(TrainError::Data(format!(
+                        "{}: {len} bytes is not a whole number of float32 (x, y, z, intensity) points",
+                        p.display()
+                    )));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Loads frame `i`; with `rng`, applies the training augmentation.
@@ -505,6 +561,25 @@ impl SurroundDataset {
         (self.format == DatasetFormat::Occ3d).then_some(cams.ego_from_lidar)
     }
 
+    /// What [`Self::load`] would refuse in frame `i`, found without decoding it: every camera
+    /// image's header against its `sample_data` size. `Err` names the file and the problem.
+    pub fn check_frame(&self, i: usize) -> Result<(), TrainError> {
+        let (_, cams) = self.cameras_of(i)?;
+        for cam in &cams.cameras {
+            let path = self.root.join(&cam.filename);
+            let (w, h) = (cam.view.camera.width, cam.view.camera.height);
+            let (iw, ih) = read_image_size(&path)?;
+            if (iw, ih) != (w, h) {
+                return Err(TrainError::Data(format!(
+                    "{}: image is {iw}x{ih} but its sample_data ({}) says {w}x{h}",
+                    path.display(),
+                    cam.sample_data_token
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// Loads frame `i`; with `rng`, applies the training augmentation (drawn per camera).
     pub fn load<R: Rng + ?Sized>(
         &self,
@@ -725,6 +800,35 @@ impl Dataset {
             Dataset::Surround(d) => d.load_points = on,
         }
     }
+    /// Checks every frame up front ([`KittiDataset::check_frame`], [`SurroundDataset::check_frame`]:
+    /// headers and file sizes, nothing decoded), so that a bad file fails a run before its first step
+    /// rather than when the frame comes up. `on_frame(done, total)` reports progress. The error
+    /// names the first bad file and the problem, and how many frames are bad in all.
+    pub fn check_all(&self, on_frame: &mut dyn FnMut(usize, usize)) -> Result<(), TrainError> {
+        let n = self.len();
+        let mut first: Option<TrainError> = None;
+        let mut bad = 0usize;
+        for i in 0..n {
+            let r = match self {
+                Dataset::Kitti(d) => d.check_frame(i),
+                Dataset::Surround(d) => d.check_frame(i),
+            };
+            if let Err(e) = r {
+                bad += 1;
+                first.get_or_insert(e);
+            }
+            on_frame(i + 1, n);
+        }
+        match first {
+            None => Ok(()),
+            Some(e) if bad == 1 => Err(e),
+            Some(e) => Err(TrainError::Data(format!(
+                "{e} (and {} more bad frame(s) of {n})",
+                bad - 1
+            ))),
+        }
+    }
+
     /// Loads frame `i`; with `rng`, applies the training augmentation: the image augmentation per
     /// camera, then the lateral mirror of the whole sample with probability `mirror_prob`, then a
     /// translation by a whole number of voxels drawn uniformly within `±shift_voxels`.
