@@ -21,8 +21,9 @@ pub struct EvalArgs {
     /// Prediction root (SemanticKITTI: sequences/XX/predictions/NNNNNN.label).
     #[arg(long)]
     pub pred: PathBuf,
-    /// Sequences to score (comma-separated; SemanticKITTI ids, `8` = `08`, or Occ3D scene names),
-    /// each once; default all with labels.
+    /// Sequences to score (comma-separated; SemanticKITTI ids, `8` = `08`, Occ3D scene names, or
+    /// nuScenes-Occupancy scene tokens, `<token>` or `scene_<token>`), each once; default all with
+    /// labels.
     #[arg(long)]
     pub sequences: Option<String>,
     /// Write the report as JSON here.

@@ -470,8 +470,28 @@ pub fn score_nuscenes_occupancy_folder(
     } else {
         gt_root.to_path_buf()
     };
+    let mut scenes = list_dirs_with_prefix(&base, "scene_")?;
+    // `sequences` are scene tokens (`<token>` or the folder name `scene_<token>`); every listed
+    // scene must have a folder.
+    if let Some(list) = opts.sequences {
+        let wanted = unique_sequences(list, |s| {
+            let s = s.trim();
+            if s.starts_with("scene_") {
+                s.to_string()
+            } else {
+                format!("scene_{s}")
+            }
+        })?;
+        if let Some(missing) = wanted.iter().find(|w| !scenes.contains(w)) {
+            return Err(EvalError::NoFrames {
+                root: base,
+                what: format!("scene {missing} has no {missing}/occupancy/ folder"),
+            });
+        }
+        scenes.retain(|s| wanted.contains(s));
+    }
     let mut jobs = Vec::new();
-    for scene in list_dirs_with_prefix(&base, "scene_")? {
+    for scene in scenes {
         let occ_dir = base.join(&scene).join("occupancy");
         for token in list_stems(&occ_dir, "npy")? {
             let file = format!("{token}.npy");

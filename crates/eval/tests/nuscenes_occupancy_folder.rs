@@ -236,3 +236,49 @@ fn nuscenes_occupancy_noise_is_ignored_in_gt_and_invalid_in_prediction() {
     assert!(close(noise_on_car.per_class.get("car").unwrap(), 0.0));
     assert!(close(noise_on_car.iou, 0.0));
 }
+
+/// `sequences` selects scenes by token (`s2`) or folder name (`scene_s2`); only their frames are
+/// scored (so a scene without predictions may be left out), and an unknown scene is an error.
+#[test]
+fn nuscenes_occupancy_sequences_select_scenes() {
+    let gt_dir = TempDir::new("gt-seq");
+    let pred_dir = TempDir::new("pred-seq");
+    let g = grid(&[(idx(1, 2, 3), CAR)]);
+    write_frame(&gt_dir.0, "s1", "lidar_a", &g);
+    write_frame(&gt_dir.0, "s2", "lidar_b", &g);
+    write_frame(&gt_dir.0, "s2", "lidar_c", &g);
+    // Only scene s2 is predicted (one miss): scoring s2 alone must work and count its two frames.
+    write_frame(&pred_dir.0, "s2", "lidar_b", &g);
+    write_frame(&pred_dir.0, "s2", "lidar_c", &grid(&[]));
+    for name in ["s2", "scene_s2"] {
+        let list = vec![name.to_string()];
+        let opts = FolderOptions {
+            sequences: Some(&list),
+            ..Default::default()
+        };
+        let r = score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap();
+        assert_eq!(r.frames, 2, "{name}");
+        assert!(close(r.recall, 1.0 / (2.0 + f64::from(f32::EPSILON))));
+    }
+    // Without the selection the unpredicted scene s1 is a missing prediction.
+    assert!(matches!(
+        score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &FolderOptions::default()),
+        Err(EvalError::MissingPrediction { .. })
+    ));
+    let list = vec!["s9".to_string()];
+    let opts = FolderOptions {
+        sequences: Some(&list),
+        ..Default::default()
+    };
+    let err = score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap_err();
+    assert!(err.to_string().contains("scene_s9"), "{err}");
+    let list = vec!["s2".to_string(), "scene_s2".to_string()];
+    let opts = FolderOptions {
+        sequences: Some(&list),
+        ..Default::default()
+    };
+    assert!(matches!(
+        score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts),
+        Err(EvalError::InvalidOptions(_))
+    ));
+}
