@@ -164,7 +164,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
                 bail!("--sequences is required (the config has no val_sequences)");
             }
             let mut ds = Dataset::open(data, &cfg.data, &seqs, &[])?;
-            ds.set_load_points(cfg.reads_lidar_at_test());
+            ds.set_load_points(cfg.model.needs_points_at_test());
             let pb = progress::bar(ds.len() as u64, "check data");
             ds.check_all(&mut progress::callback(&pb))?;
             pb.finish_and_clear();

@@ -125,15 +125,7 @@ pub fn run_with(
         &cfg.data.train_sequences,
         &cfg.data.val_sequences,
     )?;
-    // Depth supervision (SparseOcc, dense baseline, SparseOcc++ with the depth gate) and the image
-    // semantic targets of SparseOcc++'s `sem2d_aux` need the LiDAR scans.
-    let pp = cfg.model.pp_config();
-    ds.set_load_points(
-        cfg.model.kind != ModelKind::SparseOccPP
-            || pp.depth_gate
-            || pp.sem2d_aux
-            || pp.depth_oracle,
-    );
+    ds.set_load_points(cfg.model.needs_points_for_training());
     if ds.grid().dims != cfg.model.full_dims {
         bail!(
             "{}: the dataset grid is {:?} but the config's model.full_dims is {:?}",
@@ -148,7 +140,7 @@ pub fn run_with(
     ds.check_all(&mut progress::callback(&pb))?;
     if validate && !cfg.data.val_sequences.is_empty() {
         let mut val = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
-        val.set_load_points(cfg.reads_lidar_at_test());
+        val.set_load_points(cfg.model.needs_points_at_test());
         val.check_all(&mut progress::callback(&pb))?;
     }
     pb.finish_and_clear();
@@ -242,7 +234,7 @@ pub fn validate_on(
     pred_root: &Path,
 ) -> Result<(Report, f64)> {
     let mut ds = Dataset::open(data, &cfg.data, &cfg.data.val_sequences, &[])?;
-    ds.set_load_points(cfg.reads_lidar_at_test());
+    ds.set_load_points(cfg.model.needs_points_at_test());
     let pb = progress::bar(ds.len() as u64, "predict");
     let written = predict_dataset(
         model,

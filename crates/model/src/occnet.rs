@@ -115,6 +115,20 @@ impl OccNetConfig {
         self.encoder.fpn.out_channels
     }
 
+    /// Whether training needs the LiDAR scans: the depth supervision of SparseOcc's and the dense
+    /// baseline's LSS, and SparseOcc++'s options that read them (the depth gate, the image
+    /// semantic head, the depth-oracle diagnostic).
+    pub fn needs_points_for_training(&self) -> bool {
+        let pp = self.pp_config();
+        self.kind != ModelKind::SparseOccPP || pp.depth_gate || pp.sem2d_aux || pp.depth_oracle
+    }
+
+    /// Whether inference reads the LiDAR scan: only the depth-oracle diagnostic of SparseOcc++ does
+    /// (it is not a camera-only model).
+    pub fn needs_points_at_test(&self) -> bool {
+        self.kind == ModelKind::SparseOccPP && self.pp_config().depth_oracle
+    }
+
     /// The SparseOcc++ configuration with the shared sizes filled in.
     pub fn pp_config(&self) -> SparseOccPPConfig {
         let mut c = self.sparseocc_pp.clone().unwrap_or_else(|| {

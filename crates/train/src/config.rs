@@ -282,12 +282,6 @@ pub struct RunConfig {
 }
 
 impl RunConfig {
-    /// Whether inference reads the LiDAR scan: only the depth-oracle diagnostic of SparseOcc++ does
-    /// (it is not a camera-only model).
-    pub fn reads_lidar_at_test(&self) -> bool {
-        self.model.kind == occ_model::ModelKind::SparseOccPP && self.model.pp_config().depth_oracle
-    }
-
     /// Parses TOML text; `origin` names the source in errors.
     ///
     /// The model sub-sections (`[model.encoder.resnet]`, `[model.encoder.fpn]`,

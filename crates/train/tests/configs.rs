@@ -180,3 +180,43 @@ fn bad_settings_are_errors_naming_the_file_and_the_key() {
     )
     .unwrap();
 }
+
+/// Which runs read the LiDAR scans is the model config's decision: LSS depth supervision and the
+/// SparseOcc++ options that read them in training, only the depth oracle at test time.
+#[test]
+fn lidar_needs_follow_the_model_config() {
+    let base = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synthetic_tiny.toml"),
+    )
+    .unwrap();
+    let with = |from: &str, to: &str| {
+        assert!(base.contains(from), "{from}");
+        RunConfig::from_toml(&base.replacen(from, to, 1), "test").unwrap()
+    };
+    let pp_opt = |line: &str| {
+        with(
+            "output = \"SubVoxel\"",
+            &format!("output = \"SubVoxel\"\n{line}"),
+        )
+    };
+    let cases = [
+        (with("", ""), false, false),
+        (
+            with("kind = \"sparseocc++\"", "kind = \"sparseocc\""),
+            true,
+            false,
+        ),
+        (
+            with("kind = \"sparseocc++\"", "kind = \"dense\""),
+            true,
+            false,
+        ),
+        (pp_opt("depth_gate = true"), true, false),
+        (pp_opt("sem2d_aux = true"), true, false),
+        (pp_opt("depth_oracle = true"), true, true),
+    ];
+    for (i, (cfg, train, test)) in cases.iter().enumerate() {
+        assert_eq!(cfg.model.needs_points_for_training(), *train, "case {i}");
+        assert_eq!(cfg.model.needs_points_at_test(), *test, "case {i}");
+    }
+}
