@@ -17,7 +17,9 @@ use crate::palette::depth_color;
 use crate::panels::{panel_grid, side_by_side};
 use crate::render::drawn;
 use crate::{canvas_to_image, check_grid, check_labels, image_to_canvas, RgbImage, VizError};
-use occ_geometry::{mat4_inverse, project_with, transform_point, CameraView, Mat4, VoxelGrid};
+use occ_geometry::{
+    mat4_inverse, mat4_mul, project_with, transform_point, CameraView, Mat4, VoxelGrid,
+};
 use rayon::prelude::*;
 
 /// A point projected into an image.
@@ -95,7 +97,8 @@ pub struct SurroundOptions {
     /// Columns of the camera grid; `None`: 3 for up to nine cameras (rows of at most three,
     /// e.g. 3x2 for six, 2x2 for four), about square beyond.
     pub columns: Option<usize>,
-    /// Radius (full-resolution image pixels) of a drawn LiDAR point; 0 draws one pixel.
+    /// Radius of a drawn LiDAR point in pixels of the image drawn into (the panel, for
+    /// [`render_surround`]); 0 draws one pixel.
     pub point_radius: usize,
     /// Depth (m) at the far end of the point colour ramp (near red .. far violet).
     pub max_depth_m: f64,
@@ -103,8 +106,8 @@ pub struct SurroundOptions {
     pub near_m: f64,
     /// Draw the LiDAR points.
     pub draw_points: bool,
-    /// Side of the bird's-eye panel in pixels (its longer side).
-    pub bev_size: usize,
+    /// Longer side of the bird's-eye panel in pixels; `None`: the height of the camera grid.
+    pub bev_size: Option<usize>,
     /// Length (m) of the frustum edges in the bird's-eye view.
     pub frustum_range_m: f64,
     /// Label of the camera grid (e.g. the scene and sample).
@@ -116,11 +119,11 @@ impl Default for SurroundOptions {
         SurroundOptions {
             panel_width: 800,
             columns: None,
-            point_radius: 2,
+            point_radius: 1,
             max_depth_m: 60.0,
             near_m: 0.5,
             draw_points: true,
-            bev_size: 900,
+            bev_size: None,
             frustum_range_m: 30.0,
             title: "cameras".into(),
         }
@@ -235,20 +238,24 @@ const FRUSTUM_COLORS: [[u8; 3]; 8] = [
 /// The bird's-eye view of `grid`: forward (+x) up, left (+y) to the left; each column shows its
 /// highest drawn voxel (class colour, darker when lower), the points as small dots coloured by
 /// their distance from the grid origin when `draw_points`, each camera's horizontal field of
-/// view as a triangle of `frustum_range_m` with its name, and a 10 m lattice.
+/// view as a triangle of `frustum_range_m` with its name (from the raw intrinsics and image size;
+/// `img_aug` is not used), and a 10 m lattice; `size` pixels along the grid's longer side.
 pub fn bev_panel(
     grid: &VoxelGrid,
     labels: Option<&SurroundGrid<'_>>,
     points: &[[f32; 3]],
     cameras: &[(&str, &CameraView)],
+    size: usize,
     opts: &SurroundOptions,
 ) -> Result<RgbImage, VizError> {
     check_grid(grid)?;
     let [nx, ny, nz] = grid.dims;
-    if opts.bev_size == 0 {
-        return Err(VizError::InvalidOptions("bird's-eye size is 0".into()));
+    if size == 0 || size > 16384 {
+        return Err(VizError::InvalidOptions(format!(
+            "bird's-eye size {size} is outside 1..=16384"
+        )));
     }
-    let scale = opts.bev_size as f64 / nx.max(ny) as f64; // pixels per voxel
+    let scale = size as f64 / nx.max(ny) as f64; // pixels per voxel
     let (w, h) = (
         ((ny as f64 * scale).round() as usize).max(1),
         ((nx as f64 * scale).round() as usize).max(1),
@@ -322,7 +329,7 @@ pub fn bev_panel(
             );
         }
     }
-    let thick = (opts.bev_size / 450).max(1);
+    let thick = (size / 450).max(1);
     for (n, (name, view)) in cameras.iter().enumerate() {
         let Some(grid_from_cam) = mat4_inverse(&view.cam_from_lidar) else {
             return Err(VizError::InvalidOptions(format!(
@@ -388,10 +395,10 @@ pub fn bev_panel(
     Ok(canvas_to_image(canvas))
 }
 
-/// The whole surround picture: every camera with the points and voxels drawn over it (see
-/// [`annotate_camera`]), scaled to `panel_width` and laid out in the grid of
-/// [`display_order`] / [`default_columns`], beside the [`bev_panel`] (scaled to the grid's
-/// height).
+/// The whole surround picture: every camera scaled to `panel_width` with the points and voxels
+/// drawn over it (see [`annotate_camera`]) and laid out in the grid of
+/// [`display_order`] / [`default_columns`], beside the [`bev_panel`] (as tall as the camera grid
+/// unless `bev_size` says otherwise).
 pub fn render_surround(
     cameras: &[SurroundCamera<'_>],
     points: &[[f32; 3]],
@@ -412,15 +419,47 @@ pub fn render_surround(
     if let Some(g) = labels {
         check_labels(g.labels, grid)?;
     }
+    // Each camera is drawn at the size of its panel: the image scaled first (bilinear, pixel
+    // centres aligned), the view scaled with it, so voxels and points are drawn sharp and at a
+    // quarter of the cost of a full-resolution 1600x900 image; the count of points is that of the
+    // full-resolution image.
     let panels: Vec<(RgbImage, usize)> = cameras
         .par_iter()
         .map(|cam| -> Result<(RgbImage, usize), VizError> {
-            let (img, n) = annotate_camera(cam, points, grid, labels, opts)?;
-            let c = image_to_canvas(&img)?;
-            let h = ((c.height as f64 * opts.panel_width as f64 / c.width as f64).round()
-                as usize)
-                .max(1);
-            Ok((canvas_to_image(c.resized(opts.panel_width, h)), n))
+            let k = cam.view.camera;
+            if (cam.image.width, cam.image.height) != (k.width, k.height) || k.width == 0 {
+                return Err(VizError::InvalidImage(format!(
+                    "{}: image is {}x{} but its camera is {}x{}",
+                    cam.name, cam.image.width, cam.image.height, k.width, k.height
+                )));
+            }
+            let pw = opts.panel_width;
+            let ph = ((k.height as f64 * pw as f64 / k.width as f64).round() as usize).max(1);
+            let small = canvas_to_image(image_to_canvas(cam.image)?.resized(pw, ph));
+            let (sx, sy) = (pw as f64 / k.width as f64, ph as f64 / k.height as f64);
+            let panel_from_img: Mat4 = [
+                [sx, 0.0, 0.5 * sx - 0.5, 0.0],
+                [0.0, sy, 0.5 * sy - 0.5, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ];
+            let mut view = *cam.view;
+            view.img_aug = mat4_mul(&panel_from_img, &view.img_aug);
+            view.camera.width = pw;
+            view.camera.height = ph;
+            let panel_cam = SurroundCamera {
+                name: cam.name,
+                image: &small,
+                view: &view,
+            };
+            let (img, _) = annotate_camera(&panel_cam, points, grid, labels, opts)?;
+            let n = if opts.draw_points {
+                project_points(points, &cam.view.img_from_lidar(), k.width, k.height, opts.near_m)
+                    .len()
+            } else {
+                0
+            };
+            Ok((img, n))
         })
         .collect::<Result<_, _>>()?;
     let names: Vec<&str> = cameras.iter().map(|c| c.name).collect();
@@ -443,7 +482,8 @@ pub fn render_surround(
     let columns = opts.columns.unwrap_or_else(|| default_columns(cameras.len()));
     let cam_grid = panel_grid(&refs, columns)?;
     let views: Vec<(&str, &CameraView)> = cameras.iter().map(|c| (c.name, c.view)).collect();
-    let bev = bev_panel(grid, labels, points, &views, opts)?;
+    let size = opts.bev_size.unwrap_or(cam_grid.height);
+    let bev = bev_panel(grid, labels, points, &views, size, opts)?;
     let image = side_by_side(&[(opts.title.as_str(), &cam_grid), ("top view", &bev)])?;
     Ok(SurroundRender {
         image,
@@ -559,6 +599,45 @@ mod tests {
     }
 
     #[test]
+    fn render_surround_draws_each_camera_at_panel_scale() {
+        let v = camera(0.0);
+        let grid = VoxelGrid {
+            origin_m: [0.0, -4.0, -1.0],
+            voxel_size_m: 1.0,
+            dims: [20, 8, 4],
+        };
+        let img = RgbImage::new(80, 60);
+        let cams = [SurroundCamera {
+            name: "CAM_FRONT",
+            image: &img,
+            view: &v,
+        }];
+        let opts = SurroundOptions {
+            panel_width: 40,
+            point_radius: 0,
+            ..Default::default()
+        };
+        let pts = [[10.0f32, 0.0, 1.0], [-5.0, 0.0, 1.0]];
+        let r = render_surround(&cams, &pts, &grid, None, &opts).unwrap();
+        assert_eq!(r.points_per_camera, vec![1]);
+        // Full-resolution pixel (40, 30) is panel position (0.5 * 40 - 0.25, 0.5 * 30 - 0.25)
+        // = (19.75, 14.75) -> pixel (20, 15); the panel sits below two label strips.
+        use crate::panels::{LABEL_STRIP_H, PANEL_GAP};
+        let (x, y) = (
+            2 * PANEL_GAP + 20,
+            2 * (PANEL_GAP + LABEL_STRIP_H) + 15,
+        );
+        let i = (y * r.image.width + x) * 3;
+        assert_eq!(
+            &r.image.data[i..i + 3],
+            &depth_color((10.0 / 60.0) as f32)[..]
+        );
+        let j = i - 3 * 2;
+        assert_eq!(&r.image.data[j..j + 3], &[0, 0, 0][..]);
+        assert!(render_surround(&[], &pts, &grid, None, &opts).is_err());
+    }
+
+    #[test]
     fn display_order_and_columns() {
         let bevdet = [
             "CAM_FRONT",
@@ -591,13 +670,12 @@ mod tests {
             overlay: &ov,
         };
         let opts = SurroundOptions {
-            bev_size: 200,
             draw_points: false,
             frustum_range_m: 8.0,
             ..Default::default()
         };
         let front = camera(0.0);
-        let bev = bev_panel(&grid, Some(&g), &[], &[("CAM_FRONT", &front)], &opts).unwrap();
+        let bev = bev_panel(&grid, Some(&g), &[], &[("CAM_FRONT", &front)], 200, &opts).unwrap();
         assert_eq!((bev.width, bev.height), (200, 200));
         let px = |x: usize, y: usize| {
             let i = (y * 200 + x) * 3;
@@ -618,6 +696,7 @@ mod tests {
             labels: &short,
             overlay: &ov,
         };
-        assert!(bev_panel(&grid, Some(&bad), &[], &[], &opts).is_err());
+        assert!(bev_panel(&grid, Some(&bad), &[], &[], 200, &opts).is_err());
+        assert!(bev_panel(&grid, None, &[], &[], 0, &opts).is_err());
     }
 }
