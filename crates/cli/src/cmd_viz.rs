@@ -209,7 +209,9 @@ fn surround_format(path: &Path) -> Result<DatasetFormat> {
 fn run_surround(root: &Path, args: &VizArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     if args.labels.is_some() && args.pred.is_some() {
-        anyhow::bail!("with --nuscenes give --labels or --pred (the grid drawn over the cameras), not both");
+        anyhow::bail!(
+            "with --nuscenes give --labels or --pred (the grid drawn over the cameras), not both"
+        );
     }
     let grid_file = args.labels.as_deref().or(args.pred.as_deref());
     let format = grid_file

@@ -175,7 +175,10 @@ mod tests {
         assert_eq!(g.title, "LiDAR input occupancy (.bin)");
         let inv = dir.join("000000.invalid");
         std::fs::write(&inv, vec![0u8; n / 8]).unwrap();
-        assert_eq!(read_label_grid(&inv).unwrap().title, "invalid voxels (.invalid)");
+        assert_eq!(
+            read_label_grid(&inv).unwrap().title,
+            "invalid voxels (.invalid)"
+        );
         let label = dir.join("000000.label");
         std::fs::write(&label, vec![0u8; n * 2]).unwrap();
         assert_eq!(read_label_grid(&label).unwrap().title, "ground truth");

@@ -254,7 +254,9 @@ fn hand_project(
 fn read_pcd(path: &Path) -> Vec<[f64; 3]> {
     let b = std::fs::read(path).unwrap();
     b.chunks_exact(20)
-        .map(|r| [0, 1, 2].map(|i| f32::from_le_bytes(r[4 * i..4 * i + 4].try_into().unwrap()) as f64))
+        .map(|r| {
+            [0, 1, 2].map(|i| f32::from_le_bytes(r[4 * i..4 * i + 4].try_into().unwrap()) as f64)
+        })
         .collect()
 }
 
@@ -276,7 +278,11 @@ fn add_ego_motion(root: &Path, sample: &str) {
         ep.translation[1] -= 0.35;
         ep.rotation = [(yaw / 2.0).cos(), 0.0, 0.0, (yaw / 2.0).sin()];
         ep.timestamp += 30_000;
-        let sd = t.sample_data.iter_mut().find(|s| &s.token == sd_tok).unwrap();
+        let sd = t
+            .sample_data
+            .iter_mut()
+            .find(|s| &s.token == sd_tok)
+            .unwrap();
         sd.timestamp += 30_000;
     }
     rewrite(root, t);
@@ -295,7 +301,11 @@ fn viz_projections_agree_with_the_dataset_path_and_the_tables_with_ego_motion() 
     let views = ds.frame_views(1).unwrap();
     let points = views.read_points().unwrap();
     let s = ds.load::<rand_chacha::ChaCha8Rng>(1, None).unwrap();
-    assert_eq!(s.size, (W, H), "the test-time image transform must be the identity");
+    assert_eq!(
+        s.size,
+        (W, H),
+        "the test-time image transform must be the identity"
+    );
     assert_eq!(s.points.as_ref().unwrap(), &points);
     let raw = read_pcd(&views.lidar);
     assert_eq!(raw.len(), points.len());
@@ -374,7 +384,12 @@ fn viz_projections_agree_with_the_dataset_path_and_the_tables_with_ego_motion() 
     }
     assert!(text.contains("6 cameras"), "{text}");
     let img = read_png(&out).unwrap();
-    assert!(img.width > 3 * 800 && img.height > 2 * 225, "{}x{}", img.width, img.height);
+    assert!(
+        img.width > 3 * 800 && img.height > 2 * 225,
+        "{}x{}",
+        img.width,
+        img.height
+    );
 }
 
 #[test]
@@ -385,18 +400,42 @@ fn lidar_points_land_on_their_surface_class_colour_in_every_camera() {
     let grid = ds.grid();
     let candidates: Vec<u8> = (1..=24).collect();
     let (mut n, mut agree) = (0usize, 0usize);
+    // A negative control: the same check with every camera turned by 4 degrees about its
+    // vertical axis (a calibration error) must agree much less often.
+    let (mut n_bad, mut agree_bad) = (0usize, 0usize);
+    let (sn, cs) = 4.0f64.to_radians().sin_cos();
+    let turn: Mat4 = [
+        [cs, 0.0, sn, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [-sn, 0.0, cs, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
     let mut seen_by = std::collections::HashMap::<usize, usize>::new();
     for i in 0..ds.frames().len() {
         let f = &ds.frames()[i];
-        let labels =
-            read_labels_npz(&t.0.join("gts").join(&f.sequence).join(&f.frame).join("labels.npz"))
-                .unwrap();
+        let labels = read_labels_npz(
+            &t.0.join("gts")
+                .join(&f.sequence)
+                .join(&f.frame)
+                .join("labels.npz"),
+        )
+        .unwrap();
         let views = ds.frame_views(i).unwrap();
         let points = views.read_points().unwrap();
         for cam in &views.cameras {
             let img = read_image(&cam.image).unwrap();
+            let mut wrong = cam.view;
+            wrong.cam_from_lidar = occ_geometry::mat4_mul(&turn, &cam.view.cam_from_lidar);
             let (mut cn, mut ca) = (0usize, 0usize);
-            for q in project_points(&points, &cam.view.img_from_lidar(), W, H, NEAR_M) {
+            for (control, q) in project_points(&points, &wrong.img_from_lidar(), W, H, NEAR_M)
+                .into_iter()
+                .map(|q| (true, q))
+                .chain(
+                    project_points(&points, &cam.view.img_from_lidar(), W, H, NEAR_M)
+                        .into_iter()
+                        .map(|q| (false, q)),
+                )
+            {
                 let pt = points[q.index].map(f64::from);
                 let Some(ijk) = grid.voxel_of_point_m(pt) else {
                     continue;
@@ -416,6 +455,11 @@ fn lidar_points_land_on_their_surface_class_colour_in_every_camera() {
                             })
                     })
                 });
+                if control {
+                    n_bad += 1;
+                    agree_bad += usize::from(hit);
+                    continue;
+                }
                 cn += 1;
                 ca += usize::from(hit);
                 if i == 0 {
@@ -425,7 +469,11 @@ fn lidar_points_land_on_their_surface_class_colour_in_every_camera() {
             assert!(cn > 300, "{}: {cn} points on surfaces", cam.channel);
             let rate = ca as f64 / cn as f64;
             eprintln!("frame {i} {}: {ca}/{cn} = {rate:.3}", cam.channel);
-            assert!(rate > 0.85, "{}: {ca}/{cn} points on their class colour", cam.channel);
+            assert!(
+                rate > 0.85,
+                "{}: {ca}/{cn} points on their class colour",
+                cam.channel
+            );
             n += cn;
             agree += ca;
         }
@@ -433,6 +481,12 @@ fn lidar_points_land_on_their_surface_class_colour_in_every_camera() {
     let rate = agree as f64 / n as f64;
     eprintln!("points on their surface's class colour: {agree}/{n} = {rate:.4}");
     assert!(rate > 0.93, "{agree}/{n}");
+    let bad = agree_bad as f64 / n_bad as f64;
+    eprintln!("with a 4 degree calibration error: {agree_bad}/{n_bad} = {bad:.4}");
+    assert!(
+        bad < rate - 0.1,
+        "the check does not see a 4 degree error: {bad} vs {rate}"
+    );
     // Neighbouring cameras overlap: some points are checked in two cameras.
     assert!(seen_by.values().filter(|&&c| c >= 2).count() > 20);
 }
@@ -455,19 +509,61 @@ fn custom_rigs_and_bad_tables_are_handled() {
     let a = t.0.join("a.png");
     let b = t.0.join("b.png");
     let c = t.0.join("c.png");
-    ok(&["viz", "--nuscenes", p(&base), "--scene", &scene, "--index", "1", "--out", p(&a)]);
-    ok(&["viz", "--nuscenes", p(&base), "--sample", &s1, "--out", p(&b)]);
+    ok(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--scene",
+        &scene,
+        "--index",
+        "1",
+        "--out",
+        p(&a),
+    ]);
+    ok(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s1,
+        "--out",
+        p(&b),
+    ]);
     assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
     let text = ok(&[
-        "viz", "--nuscenes", p(&base), "--sample", &s1, "--labels", p(&labels), "--out", p(&c),
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s1,
+        "--labels",
+        p(&labels),
+        "--out",
+        p(&c),
     ]);
     assert!(text.contains("6 cameras"), "{text}");
     assert_ne!(std::fs::read(&a).unwrap(), std::fs::read(&c).unwrap());
     // --scene alone is index 0.
     let d = t.0.join("d.png");
-    ok(&["viz", "--nuscenes", p(&base), "--scene", &scene, "--out", p(&d)]);
+    ok(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--scene",
+        &scene,
+        "--out",
+        p(&d),
+    ]);
     let e = t.0.join("e.png");
-    ok(&["viz", "--nuscenes", p(&base), "--sample", &s0, "--out", p(&e)]);
+    ok(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s0,
+        "--out",
+        p(&e),
+    ]);
     assert_eq!(std::fs::read(&d).unwrap(), std::fs::read(&e).unwrap());
 
     // A custom rig: four cameras, one under a new channel name.
@@ -494,22 +590,47 @@ fn custom_rigs_and_bad_tables_are_handled() {
             s.channel = "CAM_REAR_WIDE".into();
         }
     }
-    assert_eq!(tb.sensor.iter().filter(|s| s.modality == "camera").count(), 4);
+    assert_eq!(
+        tb.sensor.iter().filter(|s| s.modality == "camera").count(),
+        4
+    );
     rewrite(&rig, tb);
     let mut rds = open(&rig);
     assert_eq!(
         rds.tables().camera_channels(),
-        ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_REAR_WIDE"]
+        [
+            "CAM_FRONT",
+            "CAM_FRONT_RIGHT",
+            "CAM_FRONT_LEFT",
+            "CAM_REAR_WIDE"
+        ]
     );
     // The dataset path's six default cameras are no longer there: a clear error.
-    let err = rds.load::<rand_chacha::ChaCha8Rng>(0, None).unwrap_err().to_string();
-    assert!(err.contains("CAM_BACK") && err.contains("sample_data.json"), "{err}");
+    let err = rds
+        .load::<rand_chacha::ChaCha8Rng>(0, None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("CAM_BACK") && err.contains("sample_data.json"),
+        "{err}"
+    );
     rds.set_cameras(rds.tables().camera_channels()).unwrap();
     let s = rds.load::<rand_chacha::ChaCha8Rng>(0, None).unwrap();
     assert_eq!(s.cameras.len(), 4);
     let r4 = t.0.join("rig4.png");
-    let text = ok(&["viz", "--nuscenes", p(&rig), "--sample", &s0, "--out", p(&r4)]);
-    assert!(text.contains("4 cameras") && text.contains("CAM_REAR_WIDE"), "{text}");
+    let text = ok(&[
+        "viz",
+        "--nuscenes",
+        p(&rig),
+        "--sample",
+        &s0,
+        "--out",
+        p(&r4),
+    ]);
+    assert!(
+        text.contains("4 cameras") && text.contains("CAM_REAR_WIDE"),
+        "{text}"
+    );
     let r2 = t.0.join("rig2.png");
     let text = ok(&[
         "viz",
@@ -526,12 +647,27 @@ fn custom_rigs_and_bad_tables_are_handled() {
     // 2x2 for four cameras, 2x1 for two: the same height per row, so the four-camera picture is
     // taller.
     let (i4, i2) = (read_png(&r4).unwrap(), read_png(&r2).unwrap());
-    assert!(i4.height > i2.height + 200, "{} vs {}", i4.height, i2.height);
+    assert!(
+        i4.height > i2.height + 200,
+        "{} vs {}",
+        i4.height,
+        i2.height
+    );
     let err = fails(&[
-        "viz", "--nuscenes", p(&rig), "--sample", &s0, "--cameras", "CAM_BACK", "--out",
+        "viz",
+        "--nuscenes",
+        p(&rig),
+        "--sample",
+        &s0,
+        "--cameras",
+        "CAM_BACK",
+        "--out",
         p(&r2),
     ]);
-    assert!(err.contains("sensor.json") && err.contains("CAM_BACK"), "{err}");
+    assert!(
+        err.contains("sensor.json") && err.contains("CAM_BACK"),
+        "{err}"
+    );
 
     // Bad tables: each a clear error naming the file and the key, and no picture.
     let case = |name: &str, edit: &dyn Fn(&mut NuscenesTables)| -> PathBuf {
@@ -552,13 +688,29 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sample_data.retain(|sd| !drop.contains(&sd.token));
     });
-    let err = fails(&["viz", "--nuscenes", p(&no_cam), "--sample", &s1, "--out", p(&out)]);
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&no_cam),
+        "--sample",
+        &s1,
+        "--out",
+        p(&out),
+    ]);
     assert!(
         err.contains("sample_data.json") && err.contains("CAM_BACK") && err.contains(&s1),
         "{err}"
     );
     // The other frame of that scene is still fine.
-    ok(&["viz", "--nuscenes", p(&no_cam), "--sample", &s0, "--out", p(&out)]);
+    ok(&[
+        "viz",
+        "--nuscenes",
+        p(&no_cam),
+        "--sample",
+        &s0,
+        "--out",
+        p(&out),
+    ]);
     std::fs::remove_file(&out).unwrap();
     let no_lidar = case("no_lidar_row", &|tb| {
         let keep: Vec<SampleData> = tb
@@ -569,8 +721,19 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sample_data = keep;
     });
-    let err = fails(&["viz", "--nuscenes", p(&no_lidar), "--sample", &s1, "--out", p(&out)]);
-    assert!(err.contains("sample_data.json") && err.contains("LIDAR_TOP"), "{err}");
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&no_lidar),
+        "--sample",
+        &s1,
+        "--out",
+        p(&out),
+    ]);
+    assert!(
+        err.contains("sample_data.json") && err.contains("LIDAR_TOP"),
+        "{err}"
+    );
     let no_sensor = case("no_sensor", &|tb| {
         let keep: Vec<Sensor> = tb
             .sensor
@@ -580,7 +743,15 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sensor = keep;
     });
-    let err = fails(&["viz", "--nuscenes", p(&no_sensor), "--sample", &s0, "--out", p(&out)]);
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&no_sensor),
+        "--sample",
+        &s0,
+        "--out",
+        p(&out),
+    ]);
     assert!(err.contains("sensor.json"), "{err}");
     let no_calib = case("no_calib", &|tb| {
         let cam = tb
@@ -592,7 +763,15 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .clone();
         tb.calibrated_sensor.retain(|c| c.sensor_token != cam);
     });
-    let err = fails(&["viz", "--nuscenes", p(&no_calib), "--sample", &s0, "--out", p(&out)]);
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&no_calib),
+        "--sample",
+        &s0,
+        "--out",
+        p(&out),
+    ]);
     assert!(err.contains("calibrated_sensor.json"), "{err}");
     // A table that is not JSON, an image that is missing, a LiDAR sweep that is cut short.
     let broken = t.0.join("broken");
@@ -600,50 +779,151 @@ fn custom_rigs_and_bad_tables_are_handled() {
     let sd_json = broken.join(NUSCENES_VERSION).join("sample_data.json");
     let text = std::fs::read(&sd_json).unwrap();
     std::fs::write(&sd_json, &text[..text.len() / 2]).unwrap();
-    let err = fails(&["viz", "--nuscenes", p(&broken), "--sample", &s0, "--out", p(&out)]);
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&broken),
+        "--sample",
+        &s0,
+        "--out",
+        p(&out),
+    ]);
     assert!(err.contains("sample_data.json"), "{err}");
     std::fs::write(&sd_json, &text).unwrap();
     let views = open(&broken).frame_views(0).unwrap();
     std::fs::remove_file(&views.cameras[3].image).unwrap();
-    let err = fails(&["viz", "--nuscenes", p(&broken), "--sample", &s0, "--out", p(&out)]);
-    let img_name = views.cameras[3].image.file_name().unwrap().to_str().unwrap();
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&broken),
+        "--sample",
+        &s0,
+        "--out",
+        p(&out),
+    ]);
+    let img_name = views.cameras[3]
+        .image
+        .file_name()
+        .unwrap()
+        .to_str()
+        .unwrap();
     assert!(err.contains(img_name), "{err}");
     let pcd = std::fs::read(&views.lidar).unwrap();
     std::fs::write(&views.lidar, &pcd[..pcd.len() - 7]).unwrap();
     let err = fails(&[
-        "viz", "--nuscenes", p(&broken), "--sample", &s0, "--cameras", "CAM_FRONT", "--out",
+        "viz",
+        "--nuscenes",
+        p(&broken),
+        "--sample",
+        &s0,
+        "--cameras",
+        "CAM_FRONT",
+        "--out",
         p(&out),
     ]);
-    assert!(err.contains(".pcd.bin") && err.contains("20 bytes"), "{err}");
+    assert!(
+        err.contains(".pcd.bin") && err.contains("20 bytes"),
+        "{err}"
+    );
     // Frame selection and grid files.
-    let err = fails(&["viz", "--nuscenes", p(&base), "--sample", "feedbeef", "--out", p(&out)]);
-    assert!(err.contains("sample.json") && err.contains("feedbeef"), "{err}");
     let err = fails(&[
-        "viz", "--nuscenes", p(&base), "--scene", &scene, "--index", "7", "--out", p(&out),
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        "feedbeef",
+        "--out",
+        p(&out),
     ]);
-    assert!(err.contains("out of range") && err.contains("has 2"), "{err}");
-    let err = fails(&["viz", "--nuscenes", p(&base), "--scene", "scene-9", "--out", p(&out)]);
-    assert!(err.contains("scene.json") && err.contains("scene-9"), "{err}");
+    assert!(
+        err.contains("sample.json") && err.contains("feedbeef"),
+        "{err}"
+    );
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--scene",
+        &scene,
+        "--index",
+        "7",
+        "--out",
+        p(&out),
+    ]);
+    assert!(
+        err.contains("out of range") && err.contains("has 2"),
+        "{err}"
+    );
+    let err = fails(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--scene",
+        "scene-9",
+        "--out",
+        p(&out),
+    ]);
+    assert!(
+        err.contains("scene.json") && err.contains("scene-9"),
+        "{err}"
+    );
     let err = fails(&["viz", "--nuscenes", p(&base), "--out", p(&out)]);
     assert!(err.contains("--sample") && err.contains("--scene"), "{err}");
     let err = fails(&[
-        "viz", "--nuscenes", p(&base), "--sample", &s1, "--labels", p(&labels), "--pred",
-        p(&labels), "--out", p(&out),
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s1,
+        "--labels",
+        p(&labels),
+        "--pred",
+        p(&labels),
+        "--out",
+        p(&out),
     ]);
     assert!(err.contains("not both"), "{err}");
     let txt = t.0.join("grid.txt");
     std::fs::write(&txt, b"x").unwrap();
     let err = fails(&[
-        "viz", "--nuscenes", p(&base), "--sample", &s1, "--labels", p(&txt), "--out", p(&out),
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s1,
+        "--labels",
+        p(&txt),
+        "--out",
+        p(&out),
     ]);
-    assert!(err.contains("grid.txt") && err.contains("labels.npz"), "{err}");
+    assert!(
+        err.contains("grid.txt") && err.contains("labels.npz"),
+        "{err}"
+    );
     assert!(!out.exists(), "no picture is written on an error");
     // --index without --scene, --image with --nuscenes: usage errors (clap, status 2).
-    let o = run(&["viz", "--nuscenes", p(&base), "--index", "1", "--out", p(&out)]);
+    let o = run(&[
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--index",
+        "1",
+        "--out",
+        p(&out),
+    ]);
     assert_eq!(o.status.code(), Some(2));
     let o = run(&[
-        "viz", "--nuscenes", p(&base), "--sample", &s0, "--image", p(&a), "--calib", p(&a),
-        "--out", p(&out),
+        "viz",
+        "--nuscenes",
+        p(&base),
+        "--sample",
+        &s0,
+        "--image",
+        p(&a),
+        "--calib",
+        p(&a),
+        "--out",
+        p(&out),
     ]);
     assert_eq!(o.status.code(), Some(2));
     assert!(!out.exists());

@@ -260,7 +260,10 @@ fn rerun_replaces_previous_output_and_foreign_data_is_protected() {
 #[test]
 fn scene_names_are_prefixed_once_and_rerun_cleans_prefixed_scenes() {
     assert_eq!(occ_data::synthetic::scene_name_of("0001"), "scene-0001");
-    assert_eq!(occ_data::synthetic::scene_name_of("scene-0001"), "scene-0001");
+    assert_eq!(
+        occ_data::synthetic::scene_name_of("scene-0001"),
+        "scene-0001"
+    );
     let t = TempDir::new("prefix");
     let mut cfg = SynthConfig {
         preset: Preset::Surround,
@@ -269,8 +272,8 @@ fn scene_names_are_prefixed_once_and_rerun_cleans_prefixed_scenes() {
         image_size: Some((32, 16)),
     };
     generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
-    let scenes = occ_data::formats::nuscenes_occupancy::read_scenes(&t.0.join(NUSCENES_VERSION))
-        .unwrap();
+    let scenes =
+        occ_data::formats::nuscenes_occupancy::read_scenes(&t.0.join(NUSCENES_VERSION)).unwrap();
     let names: Vec<&str> = scenes.iter().map(|s| s.name.as_str()).collect();
     assert_eq!(names, ["scene-0001", "scene-0002"]);
     assert!(t.0.join("gts/scene-0001").is_dir());

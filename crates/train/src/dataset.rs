@@ -511,7 +511,10 @@ impl SurroundDataset {
             grid,
             gt_root,
             pipeline,
-            channels: nocc::CAMERA_CHANNELS.iter().map(|c| c.to_string()).collect(),
+            channels: nocc::CAMERA_CHANNELS
+                .iter()
+                .map(|c| c.to_string())
+                .collect(),
             load_points: false,
             mirror_prob: 0.0,
             shift_voxels: [0, 0],
@@ -576,7 +579,8 @@ impl SurroundDataset {
             .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?;
         Ok((
             f,
-            self.tables.sample_cameras_of(&f.frame.frame, &self.channels)?,
+            self.tables
+                .sample_cameras_of(&f.frame.frame, &self.channels)?,
         ))
     }
 

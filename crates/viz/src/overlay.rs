@@ -222,8 +222,7 @@ pub(crate) fn overlay_canvas(
     if opts.nearest_only {
         splats.par_sort_unstable_by(|a, b| a.depth.total_cmp(&b.depth).then(a.index.cmp(&b.index)));
     } else {
-        splats
-            .par_sort_unstable_by(|a, b| b.depth.total_cmp(&a.depth).then(a.index.cmp(&b.index)));
+        splats.par_sort_unstable_by(|a, b| b.depth.total_cmp(&a.depth).then(a.index.cmp(&b.index)));
     }
     let nearest_only = opts.nearest_only;
 

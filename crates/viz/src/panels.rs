@@ -62,7 +62,11 @@ pub fn panel_grid(panels: &[(&str, &RgbImage)], columns: usize) -> Result<RgbIma
         let ty = y + (LABEL_STRIP_H - text_height(2)) / 2;
         draw_text(&mut out, tx.max(x as i64), ty as i64, label, 2, LABEL_COLOR);
         let scaled = c.resized(cell_w, h);
-        out.blit(&scaled, x as i64, (y + LABEL_STRIP_H + (cell_h - h) / 2) as i64);
+        out.blit(
+            &scaled,
+            x as i64,
+            (y + LABEL_STRIP_H + (cell_h - h) / 2) as i64,
+        );
     }
     Ok(canvas_to_image(out))
 }

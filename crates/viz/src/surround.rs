@@ -57,14 +57,12 @@ pub fn project_points(
         .enumerate()
         .filter_map(|(index, p)| {
             let [u, v, depth] = project_with(img_from_grid, p.map(f64::from))?;
-            (depth > near_m && u >= -0.5 && v >= -0.5 && u < w && v < h).then_some(
-                ProjectedPoint {
-                    index,
-                    u,
-                    v,
-                    depth,
-                },
-            )
+            (depth > near_m && u >= -0.5 && v >= -0.5 && u < w && v < h).then_some(ProjectedPoint {
+                index,
+                u,
+                v,
+                depth,
+            })
         })
         .collect()
 }
@@ -346,11 +344,8 @@ pub fn bev_panel(
             let n = (d[0] * d[0] + d[1] * d[1]).sqrt();
             (n > 1e-6).then(|| [d[0] / n, d[1] / n])
         };
-        let (Some(dl), Some(dr), Some(dc)) = (
-            dir(-0.5),
-            dir(k.width as f64 - 0.5),
-            dir(k.cx),
-        ) else {
+        let (Some(dl), Some(dr), Some(dc)) = (dir(-0.5), dir(k.width as f64 - 0.5), dir(k.cx))
+        else {
             continue; // looking straight up or down: no horizontal field of view
         };
         let r = opts.frustum_range_m;
@@ -454,8 +449,14 @@ pub fn render_surround(
             };
             let (img, _) = annotate_camera(&panel_cam, points, grid, labels, opts)?;
             let n = if opts.draw_points {
-                project_points(points, &cam.view.img_from_lidar(), k.width, k.height, opts.near_m)
-                    .len()
+                project_points(
+                    points,
+                    &cam.view.img_from_lidar(),
+                    k.width,
+                    k.height,
+                    opts.near_m,
+                )
+                .len()
             } else {
                 0
             };
@@ -479,7 +480,9 @@ pub fn render_surround(
         .zip(&titles)
         .map(|(&i, t)| (t.as_str(), &panels[i].0))
         .collect();
-    let columns = opts.columns.unwrap_or_else(|| default_columns(cameras.len()));
+    let columns = opts
+        .columns
+        .unwrap_or_else(|| default_columns(cameras.len()));
     let cam_grid = panel_grid(&refs, columns)?;
     let views: Vec<(&str, &CameraView)> = cameras.iter().map(|c| (c.name, c.view)).collect();
     let size = opts.bev_size.unwrap_or(cam_grid.height);
@@ -623,10 +626,7 @@ mod tests {
         // Full-resolution pixel (40, 30) is panel position (0.5 * 40 - 0.25, 0.5 * 30 - 0.25)
         // = (19.75, 14.75) -> pixel (20, 15); the panel sits below two label strips.
         use crate::panels::{LABEL_STRIP_H, PANEL_GAP};
-        let (x, y) = (
-            2 * PANEL_GAP + 20,
-            2 * (PANEL_GAP + LABEL_STRIP_H) + 15,
-        );
+        let (x, y) = (2 * PANEL_GAP + 20, 2 * (PANEL_GAP + LABEL_STRIP_H) + 15);
         let i = (y * r.image.width + x) * 3;
         assert_eq!(
             &r.image.data[i..i + 3],

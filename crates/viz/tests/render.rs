@@ -6,9 +6,8 @@ mod scene;
 use occ_geometry::{mat4_identity, transform_point, CameraView, Mat4, PinholeCamera, VoxelGrid};
 use occ_viz::{
     overlay_on_image, panel_grid, render_camera, render_voxels, render_voxels_from_view,
-    side_by_side,
-    write_ply, OverlayOptions, Palette, PlyFormat, PlyOptions, RenderOptions, RgbImage, VizError,
-    LABEL_STRIP_H, PANEL_GAP,
+    side_by_side, write_ply, OverlayOptions, Palette, PlyFormat, PlyOptions, RenderOptions,
+    RgbImage, VizError, LABEL_STRIP_H, PANEL_GAP,
 };
 
 fn px(img: &RgbImage, x: usize, y: usize) -> [u8; 3] {
