@@ -404,7 +404,7 @@ pub fn render_surround(
     if cameras.is_empty() {
         return Err(VizError::InvalidOptions("no cameras to render".into()));
     }
-    if opts.panel_width == 0 || !(opts.max_depth_m > 0.0) {
+    if opts.panel_width == 0 || opts.max_depth_m.is_nan() || opts.max_depth_m <= 0.0 {
         return Err(VizError::InvalidOptions(format!(
             "panel width {} and point depth range {} m must be positive",
             opts.panel_width, opts.max_depth_m
