@@ -234,6 +234,7 @@ pub fn run(args: &InferArgs) -> Result<()> {
                 grid,
                 palette: Palette::SemanticKitti,
                 occupancy_only: false,
+                title: "prediction",
             };
             let out = args.out.join(format!("{name}.png"));
             render_panel_set(None, Some(&pred_grid), Some((image, calib)), &out, 360)?;

@@ -18,6 +18,10 @@ pub struct LabelGrid {
     pub palette: Palette,
     /// True when the file held occupancy only (no classes).
     pub occupancy_only: bool,
+    /// What the file holds, as a panel title: "ground truth" for class grids, "LiDAR input
+    /// occupancy (.bin)" for SemanticKITTI's voxelised scan, the mask name for `.invalid` /
+    /// `.occluded`.
+    pub title: &'static str,
 }
 
 /// The SemanticKITTI-volume grid for `n` voxels: full (256x256x32) or a 2x/4x downsampled one; a
@@ -52,6 +56,7 @@ pub fn read_kitti_label(path: &Path, grid: VoxelGrid) -> Result<LabelGrid> {
         grid,
         palette: Palette::SemanticKitti,
         occupancy_only: false,
+        title: "ground truth",
     })
 }
 
@@ -85,6 +90,7 @@ pub fn read_surround_labels(
         grid,
         palette,
         occupancy_only: false,
+        title: "ground truth",
     })
 }
 
@@ -112,6 +118,11 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
                 grid,
                 palette: Palette::SemanticKitti,
                 occupancy_only: true,
+                title: match ext {
+                    "bin" => "LiDAR input occupancy (.bin)",
+                    "invalid" => "invalid voxels (.invalid)",
+                    _ => "occluded voxels (.occluded)",
+                },
             })
         }
         "npy" => {
@@ -128,6 +139,7 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
                 grid,
                 palette: Palette::SemanticKitti,
                 occupancy_only: false,
+                title: "ground truth",
             })
         }
         "npz" => {
@@ -137,11 +149,39 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
                 grid: VoxelGrid::occ3d_nuscenes(),
                 palette: Palette::Occ3d,
                 occupancy_only: false,
+                title: "ground truth",
             })
         }
         _ => bail!(
             "{}: unknown label file '{name}' (expected .label, .bin, .npy or labels.npz)",
             path.display()
         ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn panel_titles_name_what_the_file_holds() {
+        let dir = std::env::temp_dir().join(format!("sparseocc-labels-io-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let n = VoxelGrid::semantic_kitti().num_voxels();
+        let bin = dir.join("000000.bin");
+        std::fs::write(&bin, vec![0u8; n / 8]).unwrap();
+        let g = read_label_grid(&bin).unwrap();
+        assert!(g.occupancy_only);
+        assert_eq!(g.title, "LiDAR input occupancy (.bin)");
+        let inv = dir.join("000000.invalid");
+        std::fs::write(&inv, vec![0u8; n / 8]).unwrap();
+        assert_eq!(
+            read_label_grid(&inv).unwrap().title,
+            "invalid voxels (.invalid)"
+        );
+        let label = dir.join("000000.label");
+        std::fs::write(&label, vec![0u8; n * 2]).unwrap();
+        assert_eq!(read_label_grid(&label).unwrap().title, "ground truth");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

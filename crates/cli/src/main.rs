@@ -49,7 +49,8 @@ enum Cmd {
     Bench(cmd_bench::BenchArgs),
     /// Check this build's backend (CUDA) against the CPU reference on sparse convs and the encoder.
     CheckBackend(cmd_check::CheckArgs),
-    /// Render voxel grids (and camera overlays) to PNG, export PLY.
+    /// Render voxel grids (and camera overlays) to PNG, export PLY; `--nuscenes`: a surround-camera
+    /// frame with the LiDAR points and voxels projected into every camera.
     Viz(cmd_viz::VizArgs),
 }
 

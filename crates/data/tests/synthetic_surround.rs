@@ -256,3 +256,45 @@ fn rerun_replaces_previous_output_and_foreign_data_is_protected() {
         b"x"
     );
 }
+
+#[test]
+fn scene_names_are_prefixed_once_and_rerun_cleans_prefixed_scenes() {
+    assert_eq!(occ_data::synthetic::scene_name_of("0001"), "scene-0001");
+    assert_eq!(
+        occ_data::synthetic::scene_name_of("scene-0001"),
+        "scene-0001"
+    );
+    let t = TempDir::new("prefix");
+    let mut cfg = SynthConfig {
+        preset: Preset::Surround,
+        seed: 2,
+        sequences: vec![("scene-0001".into(), 1), ("0002".into(), 1)],
+        image_size: Some((32, 16)),
+    };
+    generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    let scenes =
+        occ_data::formats::nuscenes_occupancy::read_scenes(&t.0.join(NUSCENES_VERSION)).unwrap();
+    let names: Vec<&str> = scenes.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["scene-0001", "scene-0002"]);
+    assert!(t.0.join("gts/scene-0001").is_dir());
+    assert!(!t.0.join("gts/scene-scene-0001").exists());
+    let prefixed = |dir: &str, prefix: &str| {
+        std::fs::read_dir(t.0.join(dir))
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .starts_with(prefix)
+            })
+            .count()
+    };
+    assert_eq!(prefixed("samples/CAM_FRONT", "scene-0001__"), 1);
+    assert_eq!(prefixed("samples/CAM_FRONT", "scene-scene-"), 0);
+    // A rerun without the prefixed sequence removes its files (found under the same name).
+    cfg.sequences = vec![("0002".into(), 1)];
+    generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    assert!(!t.0.join("gts/scene-0001").exists());
+    assert_eq!(prefixed("samples/CAM_FRONT", "scene-0001__"), 0);
+}

@@ -416,12 +416,56 @@ pub struct SurroundDataset {
     grid: VoxelGrid,
     gt_root: PathBuf,
     pipeline: ImagePipelineConfig,
+    /// Camera channels of every frame, in order (the six nuScenes cameras unless
+    /// [`SurroundDataset::set_cameras`] chose others).
+    channels: Vec<String>,
     /// Load LiDAR points (depth supervision).
     pub load_points: bool,
     /// Training: probability of the lateral mirror ([`crate::mirror`]).
     pub mirror_prob: f64,
     /// Training: largest translation in voxels along x and y ([`crate::shift`]).
     pub shift_voxels: [usize; 2],
+}
+
+/// One camera of a frame at full resolution, mapping the label grid's frame to its pixels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SurroundView {
+    /// Channel (`CAM_FRONT`, or a custom rig's name).
+    pub channel: String,
+    /// The camera's `sample_data` token.
+    pub sample_data_token: String,
+    /// The image file.
+    pub image: PathBuf,
+    /// Intrinsics and image size of the tables; `cam_from_lidar` maps the label grid's frame to
+    /// the camera at its own timestamp (ego motion between the LiDAR and camera timestamps
+    /// applied); no augmentation.
+    pub view: CameraView,
+}
+
+/// The cameras and LiDAR sweep of one frame, in the label grid's frame (what
+/// [`SurroundDataset::load`] builds a [`Sample`] from, before any image augmentation).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SurroundFrameViews {
+    /// Scene name and sample token.
+    pub frame: FrameRef,
+    /// The cameras in the dataset's order.
+    pub cameras: Vec<SurroundView>,
+    /// The key-frame `LIDAR_TOP` file.
+    pub lidar: PathBuf,
+    /// `grid_from_lidar`: the LiDAR calibration for Occ3D (grid in the ego frame at the LiDAR
+    /// time), the identity for nuScenes-Occupancy (grid in the LiDAR frame).
+    pub grid_from_lidar: Mat4,
+}
+
+impl SurroundFrameViews {
+    /// The LiDAR sweep's points in the label grid's frame (metres).
+    pub fn read_points(&self) -> Result<Vec<[f32; 3]>, TrainError> {
+        let pts = nocc::read_lidar_pcd_bin(&self.lidar)?;
+        Ok(pts
+            .iter()
+            .map(|q| transform_point(&self.grid_from_lidar, q.map(f64::from)).map(|v| v as f32))
+            .collect())
+    }
 }
 
 impl SurroundDataset {
@@ -523,10 +567,64 @@ impl SurroundDataset {
             grid,
             gt_root,
             pipeline,
+            channels: nocc::CAMERA_CHANNELS
+                .iter()
+                .map(|c| c.to_string())
+                .collect(),
             load_points: false,
             mirror_prob: 0.0,
             shift_voxels: [0, 0],
         })
+    }
+
+    /// The layout.
+    pub fn format(&self) -> DatasetFormat {
+        self.format
+    }
+    /// Frames in order (`sequence` = scene name, `frame` = sample token).
+    pub fn frames(&self) -> &[FrameRef] {
+        &self.refs
+    }
+    /// The full-resolution label grid.
+    pub fn grid(&self) -> VoxelGrid {
+        self.grid
+    }
+    /// The nuScenes tables.
+    pub fn tables(&self) -> &NuscenesTables {
+        &self.tables
+    }
+    /// The camera channels of every frame, in order.
+    pub fn cameras(&self) -> &[String] {
+        &self.channels
+    }
+
+    /// Uses the cameras `channels` in this order instead of the six nuScenes ones (a custom rig;
+    /// [`NuscenesTables::camera_channels`] lists the rig of `sensor.json`). Every channel must be
+    /// a camera sensor of the tables, else an error naming `sensor.json` and the channel.
+    pub fn set_cameras(&mut self, channels: Vec<String>) -> Result<(), TrainError> {
+        let rig = self.tables.camera_channels();
+        if channels.is_empty() {
+            return Err(TrainError::Data(format!(
+                "{}: no cameras chosen (the rig has {})",
+                self.tables.dir.join("sensor.json").display(),
+                rig.join(", ")
+            )));
+        }
+        for c in &channels {
+            if !rig.contains(c) {
+                return Err(TrainError::Data(format!(
+                    "{}: no camera sensor with channel `{c}` (the camera channels are: {})",
+                    self.tables.dir.join("sensor.json").display(),
+                    if rig.is_empty() {
+                        "none".to_string()
+                    } else {
+                        rig.join(", ")
+                    }
+                )));
+            }
+        }
+        self.channels = channels;
+        Ok(())
     }
 
     /// The key-frame LiDAR and cameras of frame `i`.
@@ -535,7 +633,45 @@ impl SurroundDataset {
             .frames
             .get(i)
             .ok_or_else(|| TrainError::Data(format!("frame index {i} out of range")))?;
-        Ok((f, self.tables.sample_cameras(&f.frame.frame)?))
+        Ok((
+            f,
+            self.tables
+                .sample_cameras_of(&f.frame.frame, &self.channels)?,
+        ))
+    }
+
+    /// The cameras (full resolution, label grid's frame) and LiDAR file of frame `i`, exactly as
+    /// [`SurroundDataset::load`] uses them before the image augmentation.
+    pub fn frame_views(&self, i: usize) -> Result<SurroundFrameViews, TrainError> {
+        let (f, cams) = self.cameras_of(i)?;
+        Ok(self.views_of(f, &cams))
+    }
+
+    fn views_of(&self, f: &SurroundFrame, cams: &SampleCameras) -> SurroundFrameViews {
+        let cameras = cams
+            .cameras
+            .iter()
+            .map(|cam| {
+                let cam_from_grid = match self.format {
+                    DatasetFormat::Occ3d => cam.cam_from_ego_lidar,
+                    _ => cam.view.cam_from_lidar,
+                };
+                SurroundView {
+                    channel: cam.channel.clone(),
+                    sample_data_token: cam.sample_data_token.clone(),
+                    image: self.root.join(&cam.filename),
+                    view: CameraView::new(cam.view.camera, cam_from_grid),
+                }
+            })
+            .collect();
+        SurroundFrameViews {
+            frame: f.frame.clone(),
+            cameras,
+            lidar: self.root.join(&cams.lidar_filename),
+            grid_from_lidar: self
+                .grid_from_lidar(cams)
+                .unwrap_or_else(occ_geometry::mat4_identity),
+        }
     }
 
     /// Ground-truth file of frame `i` (it may not exist).
@@ -587,14 +723,15 @@ impl SurroundDataset {
         mut rng: Option<&mut R>,
     ) -> Result<Sample, TrainError> {
         let (f, cams) = self.cameras_of(i)?;
+        let views = self.views_of(f, &cams);
         let mut chw = Vec::new();
-        let mut cameras = Vec::with_capacity(cams.cameras.len());
+        let mut cameras = Vec::with_capacity(views.cameras.len());
         let mut size = (0, 0);
-        for cam in &cams.cameras {
-            let path = self.root.join(&cam.filename);
+        for cam in &views.cameras {
+            let path = &cam.image;
             let (w, h) = (cam.view.camera.width, cam.view.camera.height);
             // The header against the tables before decoding.
-            let (iw, ih) = read_image_size(&path)?;
+            let (iw, ih) = read_image_size(path)?;
             if (iw, ih) != (w, h) {
                 return Err(TrainError::Data(format!(
                     "{}: image is {iw}x{ih} but its sample_data ({}) says {w}x{h}",
@@ -602,7 +739,7 @@ impl SurroundDataset {
                     cam.sample_data_token
                 )));
             }
-            let img = read_image(&path)?;
+            let img = read_image(path)?;
             if (img.width, img.height) != (w, h) {
                 return Err(TrainError::Data(format!(
                     "{}: image is {}x{} but its sample_data ({}) says {w}x{h}",
@@ -617,11 +754,7 @@ impl SurroundDataset {
                 None => self.pipeline.test_aug(img.width, img.height),
             };
             let processed = process_image(&img, &aug)?;
-            let cam_from_grid = match self.format {
-                DatasetFormat::Occ3d => cam.cam_from_ego_lidar,
-                _ => cam.view.cam_from_lidar,
-            };
-            let view = CameraView::new(cam.view.camera, cam_from_grid).augmented(&aug);
+            let view = cam.view.augmented(&aug);
             cameras.push(camera_input(&view));
             size = (processed.width, processed.height);
             chw.extend_from_slice(&processed.chw);
@@ -632,20 +765,8 @@ impl SurroundDataset {
         } else {
             None
         };
-        let points = if self.load_points {
-            let p = self.root.join(&cams.lidar_filename);
-            if p.exists() {
-                let pts = nocc::read_lidar_pcd_bin(&p)?;
-                Some(match self.grid_from_lidar(&cams) {
-                    Some(m) => pts
-                        .iter()
-                        .map(|q| transform_point(&m, q.map(f64::from)).map(|v| v as f32))
-                        .collect(),
-                    None => pts,
-                })
-            } else {
-                None
-            }
+        let points = if self.load_points && views.lidar.exists() {
+            Some(views.read_points()?)
         } else {
             None
         };

@@ -65,6 +65,72 @@ impl Canvas {
         self.fill_rect(x + w - 1, y, 1, h, color);
     }
 
+    /// A line from `a` to `b` (pixel coordinates, centre of pixel `x` at `x`), `thick` pixels
+    /// wide (a square brush), clipped to the canvas.
+    pub fn draw_line(&mut self, a: [f64; 2], b: [f64; 2], color: [u8; 3], thick: usize) {
+        if !(a.iter().chain(&b).all(|v| v.is_finite())) {
+            return;
+        }
+        // Clip the parameter range to the canvas (plus the brush) so that a far endpoint does
+        // not cost a step per pixel outside.
+        let pad = thick as f64 + 1.0;
+        let (mut t0, mut t1) = (0.0f64, 1.0f64);
+        for (p, q, lo, hi) in [
+            (a[0], b[0] - a[0], -pad, self.width as f64 + pad),
+            (a[1], b[1] - a[1], -pad, self.height as f64 + pad),
+        ] {
+            if q.abs() < 1e-12 {
+                if p < lo || p > hi {
+                    return;
+                }
+                continue;
+            }
+            let (ta, tb) = ((lo - p) / q, (hi - p) / q);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+        if t0 > t1 {
+            return;
+        }
+        let pa = [a[0] + (b[0] - a[0]) * t0, a[1] + (b[1] - a[1]) * t0];
+        let pb = [a[0] + (b[0] - a[0]) * t1, a[1] + (b[1] - a[1]) * t1];
+        let steps = ((pb[0] - pa[0]).abs().max((pb[1] - pa[1]).abs()).ceil() as usize).max(1);
+        let r0 = -((thick.max(1) as i64 - 1) / 2);
+        let r1 = thick.max(1) as i64 / 2;
+        for s in 0..=steps {
+            let t = s as f64 / steps as f64;
+            let x = (pa[0] + (pb[0] - pa[0]) * t).round() as i64;
+            let y = (pa[1] + (pb[1] - pa[1]) * t).round() as i64;
+            for dy in r0..=r1 {
+                for dx in r0..=r1 {
+                    let (xx, yy) = (x + dx, y + dy);
+                    if xx >= 0 && yy >= 0 {
+                        self.set(xx as usize, yy as usize, color);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A filled disc of radius `r` pixels centred on pixel (`x`, `y`), clipped to the canvas.
+    pub fn fill_disc(&mut self, x: i64, y: i64, r: usize, color: [u8; 3]) {
+        let r = r as i64;
+        for dy in -r..=r {
+            let yy = y + dy;
+            if yy < 0 || yy >= self.height as i64 {
+                continue;
+            }
+            for dx in -r..=r {
+                let xx = x + dx;
+                if xx < 0 || xx >= self.width as i64 || dx * dx + dy * dy > r * r + r {
+                    continue;
+                }
+                let i = (yy as usize * self.width + xx as usize) * 3;
+                self.data[i..i + 3].copy_from_slice(&color);
+            }
+        }
+    }
+
     /// Copy `src` with its top-left at (`x`, `y`), clipped to this canvas.
     pub fn blit(&mut self, src: &Canvas, x: i64, y: i64) {
         for sy in 0..src.height {
@@ -174,6 +240,34 @@ mod tests {
         let mut two = Canvas::new(2, 1, [0, 0, 0]);
         two.set(1, 0, [200, 200, 200]);
         assert_eq!(two.resized(1, 1).get(0, 0), [100, 100, 100]);
+    }
+
+    #[test]
+    fn lines_and_discs_cover_their_pixels_and_clip() {
+        let mut c = Canvas::new(10, 6, [0, 0, 0]);
+        c.draw_line([1.0, 2.0], [8.0, 2.0], [255, 0, 0], 1);
+        for x in 0..10 {
+            let want = if (1..=8).contains(&x) {
+                [255, 0, 0]
+            } else {
+                [0, 0, 0]
+            };
+            assert_eq!(c.get(x, 2), want, "x {x}");
+        }
+        assert_eq!(c.get(4, 1), [0, 0, 0]);
+        // A diagonal far outside on both ends is clipped, not walked pixel by pixel.
+        c.draw_line([-1e9, -1e9], [1e9, 1e9], [0, 255, 0], 1);
+        assert_eq!(c.get(3, 3), [0, 255, 0]);
+        assert_eq!(c.get(5, 5), [0, 255, 0]);
+        c.draw_line([f64::NAN, 0.0], [3.0, 3.0], [9, 9, 9], 1);
+        let mut d = Canvas::new(9, 9, [0, 0, 0]);
+        d.fill_disc(4, 4, 2, [1, 1, 1]);
+        let n = d.data.chunks(3).filter(|p| p == &[1, 1, 1]).count();
+        assert_eq!(n, 21, "radius-2 disc");
+        assert_eq!(d.get(4, 2), [1, 1, 1]);
+        assert_eq!(d.get(2, 2), [0, 0, 0]);
+        d.fill_disc(-1, 0, 1, [2, 2, 2]);
+        assert_eq!(d.get(0, 0), [2, 2, 2]);
     }
 
     #[test]

@@ -4,7 +4,11 @@
 //!   legend, title), camera behind and above the ego.
 //! - [`overlay_on_image`]: drawn voxels projected onto a camera image with `img_from_lidar`,
 //!   depth-sorted and alpha-blended.
-//! - [`side_by_side`]: labelled panels of equal height (image | prediction | ground truth).
+//! - [`side_by_side`]: labelled panels of equal height (image | prediction | ground truth);
+//!   [`panel_grid`]: labelled panels in rows and columns.
+//! - [`render_surround`]: a surround-camera frame: every camera of a rig with the LiDAR points
+//!   (coloured by depth, [`project_points`]) and the voxels of a grid drawn over it, in a grid of
+//!   panels beside a bird's-eye view with the camera frusta ([`bev_panel`]).
 //! - [`write_ply`]: drawn voxels as a coloured PLY point cloud.
 //! - [`Palette`]: SemanticKITTI (20 classes), Occ3D-nuScenes (18 incl. free) and
 //!   nuScenes-Occupancy (17 incl. empty) names and colours; [`height_color`] ramp for
@@ -24,6 +28,7 @@ pub mod plot;
 mod ply;
 mod raster;
 mod render;
+mod surround;
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -32,12 +37,16 @@ pub use occ_data::image::RgbImage;
 use occ_geometry::VoxelGrid;
 
 pub use overlay::{overlay_on_image, OverlayOptions};
-pub use palette::{height_color, Palette, UNKNOWN_CLASS_RGB};
-pub use panels::{side_by_side, LABEL_STRIP_H, PANEL_GAP};
+pub use palette::{depth_color, height_color, Palette, UNKNOWN_CLASS_RGB};
+pub use panels::{panel_grid, side_by_side, LABEL_STRIP_H, PANEL_GAP};
 pub use ply::{write_ply, PlyFormat, PlyOptions};
 pub use render::{
     fit_camera, render_camera, render_voxels, render_voxels_from_view, RenderCamera, RenderOptions,
     Viewport, MAX_PIXELS,
+};
+pub use surround::{
+    annotate_camera, bev_panel, default_columns, display_order, project_points, render_surround,
+    ProjectedPoint, SurroundCamera, SurroundGrid, SurroundOptions, SurroundRender,
 };
 
 use canvas::Canvas;

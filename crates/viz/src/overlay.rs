@@ -37,6 +37,10 @@ pub struct OverlayOptions {
     /// Darken the border (0.75 px) of footprints at least 8 px across, so that individual
     /// voxels stay visible where they overlap.
     pub outline: bool,
+    /// Paint each pixel once, with the nearest voxel that covers it (voxels sorted nearest
+    /// first, a pixel already painted is kept), so the image stays visible through one
+    /// semi-transparent layer; otherwise far to near, every footprint blended over the last.
+    pub nearest_only: bool,
 }
 
 impl OverlayOptions {
@@ -52,6 +56,7 @@ impl OverlayOptions {
             near_m: 0.5,
             max_depth_m: f64::INFINITY,
             outline: true,
+            nearest_only: false,
         }
     }
 
@@ -213,8 +218,13 @@ pub(crate) fn overlay_canvas(
             out
         })
         .collect();
-    // Far first; equal depths in voxel order (deterministic).
-    splats.par_sort_unstable_by(|a, b| b.depth.total_cmp(&a.depth).then(a.index.cmp(&b.index)));
+    // Far first (near first for `nearest_only`); equal depths in voxel order (deterministic).
+    if opts.nearest_only {
+        splats.par_sort_unstable_by(|a, b| a.depth.total_cmp(&b.depth).then(a.index.cmp(&b.index)));
+    } else {
+        splats.par_sort_unstable_by(|a, b| b.depth.total_cmp(&a.depth).then(a.index.cmp(&b.index)));
+    }
+    let nearest_only = opts.nearest_only;
 
     if w == 0 || h == 0 {
         return Ok(());
@@ -228,13 +238,21 @@ pub(crate) fn overlay_canvas(
         .for_each(|(b, chunk)| {
             let row0 = b * band_rows;
             let row1 = row0 + chunk.len() / (w * 3);
+            let mut painted = vec![false; if nearest_only { chunk.len() / 3 } else { 0 }];
             for sp in &splats {
                 if sp.poly.y_max < row0 as f32 || sp.poly.y_min > row1 as f32 {
                     continue;
                 }
                 let edge_color = shade(sp.color, 0.55);
                 sp.poly.for_each_pixel(row0, row1, w, |x, y, dist| {
-                    let i = ((y - row0) * w + x) * 3;
+                    let p = (y - row0) * w + x;
+                    if nearest_only {
+                        if painted[p] {
+                            return;
+                        }
+                        painted[p] = true;
+                    }
+                    let i = p * 3;
                     let dst = [chunk[i], chunk[i + 1], chunk[i + 2]];
                     let c = if sp.outline && dist < 0.75 {
                         edge_color

@@ -165,6 +165,29 @@ pub fn height_color(t: f32) -> [u8; 3] {
     [c[0] as u8, c[1] as u8, c[2] as u8]
 }
 
+const DEPTH_RAMP: [(f32, [f32; 3]); 5] = [
+    (0.0, [255.0, 40.0, 40.0]),
+    (0.25, [255.0, 200.0, 0.0]),
+    (0.5, [60.0, 230.0, 60.0]),
+    (0.75, [0.0, 200.0, 255.0]),
+    (1.0, [120.0, 70.0, 255.0]),
+];
+
+/// Depth colour for `t` in [0, 1] (clamped; NaN maps to 0): near red → yellow → green → cyan →
+/// far violet (the LiDAR points of the surround-camera panels).
+pub fn depth_color(t: f32) -> [u8; 3] {
+    let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
+    for w in DEPTH_RAMP.windows(2) {
+        let (t0, c0) = w[0];
+        let (t1, c1) = w[1];
+        if t <= t1 {
+            let a = (t - t0) / (t1 - t0);
+            return [0, 1, 2].map(|i| (c0[i] + (c1[i] - c0[i]) * a).round() as u8);
+        }
+    }
+    DEPTH_RAMP[DEPTH_RAMP.len() - 1].1.map(|v| v as u8)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

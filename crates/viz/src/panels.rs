@@ -15,6 +15,62 @@ pub const PANEL_GAP: usize = 8;
 const BG: [u8; 3] = [40, 40, 40];
 const LABEL_COLOR: [u8; 3] = [240, 240, 240];
 
+/// Lay `panels` out row by row in a grid of `columns` columns (the last row may be short), each
+/// scaled (bilinear, aspect kept) to the width of the widest one and centred in a cell as tall
+/// as the tallest scaled panel, with its label centred in a strip above it. The same border,
+/// gaps and label strips as [`side_by_side`]. Errors on an empty list, `columns` of 0 or an
+/// empty/invalid panel.
+pub fn panel_grid(panels: &[(&str, &RgbImage)], columns: usize) -> Result<RgbImage, VizError> {
+    if panels.is_empty() || columns == 0 {
+        return Err(VizError::InvalidOptions(format!(
+            "panel_grid needs at least one panel and one column (got {} panels, {columns} columns)",
+            panels.len()
+        )));
+    }
+    let mut canvases = Vec::with_capacity(panels.len());
+    for (label, img) in panels {
+        let c = image_to_canvas(img)?;
+        if c.width == 0 || c.height == 0 {
+            return Err(VizError::InvalidOptions(format!(
+                "panel {label:?} is empty"
+            )));
+        }
+        canvases.push(c);
+    }
+    let cell_w = canvases.iter().map(|c| c.width).max().unwrap_or(1);
+    let heights: Vec<usize> = canvases
+        .iter()
+        .map(|c| ((c.height as f64 * cell_w as f64 / c.width as f64).round() as usize).max(1))
+        .collect();
+    let cell_h = heights.iter().copied().max().unwrap_or(1);
+    let cols = columns.min(panels.len());
+    let rows = panels.len().div_ceil(cols);
+    let total_w = cols as f64 * (cell_w + PANEL_GAP) as f64 + PANEL_GAP as f64;
+    let total_h = rows as f64 * (cell_h + LABEL_STRIP_H + PANEL_GAP) as f64 + PANEL_GAP as f64;
+    if total_w * total_h > MAX_PIXELS as f64 {
+        return Err(VizError::InvalidOptions(format!(
+            "panel grid of {total_w}x{total_h} would exceed {MAX_PIXELS} pixels"
+        )));
+    }
+    let mut out = Canvas::new(total_w as usize, total_h as usize, BG);
+    for (n, (((label, _), c), &h)) in panels.iter().zip(&canvases).zip(&heights).enumerate() {
+        let (r, col) = (n / cols, n % cols);
+        let x = PANEL_GAP + col * (cell_w + PANEL_GAP);
+        let y = PANEL_GAP + r * (cell_h + LABEL_STRIP_H + PANEL_GAP);
+        let tw = text_width(label, 2);
+        let tx = x as i64 + (cell_w as i64 - tw as i64) / 2;
+        let ty = y + (LABEL_STRIP_H - text_height(2)) / 2;
+        draw_text(&mut out, tx.max(x as i64), ty as i64, label, 2, LABEL_COLOR);
+        let scaled = c.resized(cell_w, h);
+        out.blit(
+            &scaled,
+            x as i64,
+            (y + LABEL_STRIP_H + (cell_h - h) / 2) as i64,
+        );
+    }
+    Ok(canvas_to_image(out))
+}
+
 /// Place `panels` left to right, each scaled (bilinear, aspect kept) to the height of the
 /// tallest one, with its label centred in a strip above it.
 ///

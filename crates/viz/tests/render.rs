@@ -5,9 +5,9 @@ mod scene;
 
 use occ_geometry::{mat4_identity, transform_point, CameraView, Mat4, PinholeCamera, VoxelGrid};
 use occ_viz::{
-    overlay_on_image, render_camera, render_voxels, render_voxels_from_view, side_by_side,
-    write_ply, OverlayOptions, Palette, PlyFormat, PlyOptions, RenderOptions, RgbImage, VizError,
-    LABEL_STRIP_H, PANEL_GAP,
+    overlay_on_image, panel_grid, render_camera, render_voxels, render_voxels_from_view,
+    side_by_side, write_ply, OverlayOptions, Palette, PlyFormat, PlyOptions, RenderOptions,
+    RgbImage, VizError, LABEL_STRIP_H, PANEL_GAP,
 };
 
 fn px(img: &RgbImage, x: usize, y: usize) -> [u8; 3] {
@@ -328,6 +328,60 @@ fn overlay_paints_far_first_and_blends() {
     let covered: Vec<usize> = (0..128).filter(|&x| px(&out, x, 48) != [100; 3]).collect();
     assert_eq!(covered.first(), Some(&57));
     assert_eq!(covered.last(), Some(&71));
+}
+
+#[test]
+fn overlay_nearest_only_blends_each_pixel_once_with_the_nearest_voxel() {
+    let (grid, view) = overlay_setup();
+    let m = view.img_from_lidar();
+    let img = grey_image(128, 96, 100);
+    let p = Palette::SemanticKitti;
+    let (near_c, far_c) = (13u8, 1u8);
+    let mut labels = vec![0u8; grid.num_voxels()];
+    set(&mut labels, &grid, [3, 5, 5], near_c);
+    set(&mut labels, &grid, [15, 5, 5], far_c);
+    let (nrgb, frgb) = (p.color(near_c).unwrap(), p.color(far_c).unwrap());
+    let mut opts = OverlayOptions::new(p);
+    opts.outline = false;
+    opts.nearest_only = true;
+    let b = |d: [u8; 3], s: [u8; 3]| -> [u8; 3] {
+        [0, 1, 2].map(|k| (d[k] as f32 * 0.5 + s[k] as f32 * 0.5).round() as u8)
+    };
+    let out = overlay_on_image(&img, &labels, &grid, &m, &opts).unwrap();
+    // The centre is covered by both: only the near one, blended once over the image.
+    assert_eq!(px(&out, 64, 48), b([100; 3], nrgb));
+    assert_eq!(px(&out, 64 + 6, 48), b([100; 3], nrgb));
+    assert_eq!(px(&out, 64 + 20, 48), [100; 3]);
+    // Without the near voxel the far one shows, once.
+    set(&mut labels, &grid, [3, 5, 5], 0);
+    let out = overlay_on_image(&img, &labels, &grid, &m, &opts).unwrap();
+    assert_eq!(px(&out, 64, 48), b([100; 3], frgb));
+}
+
+#[test]
+fn panel_grid_lays_out_rows_of_equal_cells() {
+    let panels: Vec<RgbImage> = (0..5).map(|i| grey_image(40, 20, 50 * i as u8)).collect();
+    let refs: Vec<(&str, &RgbImage)> = panels.iter().map(|p| ("cam", p)).collect();
+    let out = panel_grid(&refs, 3).unwrap();
+    assert_eq!(out.width, PANEL_GAP + 3 * (40 + PANEL_GAP));
+    assert_eq!(out.height, PANEL_GAP + 2 * (LABEL_STRIP_H + 20 + PANEL_GAP));
+    for (i, _) in panels.iter().enumerate() {
+        let (r, c) = (i / 3, i % 3);
+        let x = PANEL_GAP + c * (40 + PANEL_GAP);
+        let y = PANEL_GAP + r * (LABEL_STRIP_H + 20 + PANEL_GAP) + LABEL_STRIP_H;
+        assert_eq!(px(&out, x, y), [50 * i as u8; 3], "panel {i}");
+        assert_eq!(px(&out, x + 39, y + 19), [50 * i as u8; 3], "panel {i}");
+    }
+    // A narrower panel is scaled to the cell width, aspect kept, centred vertically.
+    let small = grey_image(20, 5, 7);
+    let big = grey_image(40, 20, 9);
+    let out = panel_grid(&[("a", &big), ("b", &small)], 2).unwrap();
+    let x = PANEL_GAP + 40 + PANEL_GAP;
+    let y = PANEL_GAP + LABEL_STRIP_H;
+    assert_eq!(px(&out, x + 20, y + 10), [7; 3]);
+    assert_ne!(px(&out, x + 20, y + 2), [7; 3]);
+    assert!(panel_grid(&refs, 0).is_err());
+    assert!(panel_grid(&[], 2).is_err());
 }
 
 #[test]

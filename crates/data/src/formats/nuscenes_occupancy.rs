@@ -293,7 +293,7 @@ pub struct SampleCameras {
     pub ego_from_lidar: Mat4,
     /// `global_from_ego` at the LiDAR timestamp.
     pub global_from_ego: Mat4,
-    /// In [`CAMERA_CHANNELS`] order.
+    /// In [`CAMERA_CHANNELS`] order (or the order asked of [`NuscenesTables::sample_cameras_of`]).
     pub cameras: Vec<NuscenesCamera>,
 }
 
@@ -463,6 +463,40 @@ impl NuscenesTables {
     /// i.e. LiDAR -> ego at the LiDAR time -> global -> ego at the camera time -> camera (as
     /// BEVDet/OccFormer/SparseOcc build `lidar2cam`, with ego motion between the two timestamps).
     pub fn sample_cameras(&self, sample_token: &str) -> Result<SampleCameras, DataError> {
+        self.sample_cameras_of(sample_token, &CAMERA_CHANNELS)
+    }
+
+    /// The camera channels of the rig in `sensor.json`: every sensor of modality `camera`, the six
+    /// nuScenes channels first in [`CAMERA_CHANNELS`] order, then any others in table order (a
+    /// custom rig may have any number of cameras, under any channel names).
+    pub fn camera_channels(&self) -> Vec<String> {
+        let cams: Vec<&str> = self
+            .sensor
+            .iter()
+            .filter(|s| s.modality == "camera")
+            .map(|s| s.channel.as_str())
+            .collect();
+        let mut out: Vec<String> = CAMERA_CHANNELS
+            .iter()
+            .filter(|c| cams.contains(c))
+            .map(|c| c.to_string())
+            .collect();
+        for c in cams {
+            if !out.iter().any(|o| o == c) {
+                out.push(c.to_string());
+            }
+        }
+        out
+    }
+
+    /// Like [`NuscenesTables::sample_cameras`], for the cameras `channels` in that order (a custom
+    /// rig; see [`NuscenesTables::camera_channels`]). Every channel needs a key-frame `sample_data`
+    /// row of the sample, else an error naming `sample_data.json`, the sample and the channel.
+    pub fn sample_cameras_of<S: AsRef<str>>(
+        &self,
+        sample_token: &str,
+        channels: &[S],
+    ) -> Result<SampleCameras, DataError> {
         let sample = self
             .idx_sample
             .get(sample_token)
@@ -502,8 +536,9 @@ impl NuscenesTables {
             })?;
         let global_from_ego_l = self.pose_of(lidar)?;
         let global_from_lidar = mat4_mul(&global_from_ego_l, &ego_from_lidar);
-        let mut cameras = Vec::with_capacity(6);
-        for ch in CAMERA_CHANNELS {
+        let mut cameras = Vec::with_capacity(channels.len());
+        for ch in channels {
+            let ch = ch.as_ref();
             let sd = *by_channel.get(ch).ok_or_else(|| {
                 DataError::format(
                     &sd_path,

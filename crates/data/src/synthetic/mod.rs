@@ -84,6 +84,7 @@ pub(crate) mod vis;
 pub(crate) mod world;
 
 pub use render::LidarSpec;
+pub use surround::scene_name_of;
 
 use crate::error::DataError;
 use crate::formats::io::{create_dir_all, read_bytes, write_atomic};
@@ -537,7 +538,7 @@ fn sequence_paths(
     match preset {
         Preset::Kitti | Preset::KittiSmall => (vec![out.join("sequences").join(name)], Vec::new()),
         Preset::Surround => {
-            let scene = format!("scene-{name}");
+            let scene = scene_name_of(name);
             let samples = crate::formats::nuscenes_occupancy::CAMERA_CHANNELS
                 .iter()
                 .chain(std::iter::once(

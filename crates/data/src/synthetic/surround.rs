@@ -80,6 +80,16 @@ fn translation(t: [f64; 3]) -> Mat4 {
     m
 }
 
+/// The nuScenes scene name of a synthetic sequence: `scene-<name>`, unless `name` already starts
+/// with `scene-` (`--sequences scene-0001:2` names the scene `scene-0001`, not `scene-scene-0001`).
+pub fn scene_name_of(name: &str) -> String {
+    if name.starts_with("scene-") {
+        name.to_string()
+    } else {
+        format!("scene-{name}")
+    }
+}
+
 /// `scene.json` record (nuScenes v1.0 schema).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub(crate) struct SceneRecord {
@@ -164,7 +174,7 @@ pub(super) fn write_scene(
     let (w, h) = cfg.image_size();
     let cam = surround_camera(w, h);
     let lidar = cfg.preset.lidar();
-    let scene_name = format!("scene-{name}");
+    let scene_name = scene_name_of(name);
     let seed = cfg.seed;
     let scene_token = token(seed, &format!("scene:{name}"));
     if stats.class_voxels.len() < 18 {
