@@ -6,75 +6,19 @@
 
 use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::Stdio;
 
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_sparseocc"));
-    c.env("CI", "1");
-    c
-}
-
-fn run<S: AsRef<OsStr>>(args: &[S]) -> Output {
-    bin().args(args).output().expect("run sparseocc")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn ok<S: AsRef<OsStr> + std::fmt::Debug>(args: &[S]) -> String {
-    let o = run(args);
-    assert!(
-        o.status.success(),
-        "sparseocc {args:?} failed:\n{}",
-        text(&o)
-    );
-    text(&o)
-}
+mod support;
+use support::{bin, copy_dir, ok, run};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("sparseocc-bad-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    support::tmp("bad", name)
 }
 
-/// A tiny SparseOcc++ on the kitti-small grid (as in cli.rs).
-const TINY: &str = r#"
-[model]
-kind = "sparseocc++"
-num_classes = 20
-full_dims = [128, 128, 16]
-lss_level = 0
-
-[model.encoder.resnet]
-depth = 18
-base_width = 8
-out_indices = [1]
-
-[model.encoder.fpn]
-out_channels = 16
-
-[model.sparseocc_pp]
-embed_dim = 16
-dca_heads = 2
-keep_ratios = [1.0, 0.1, 0.1]
-
-[train]
-steps = 2
-lr = 1e-3
-checkpoint_every = 1
-
-[data]
-image_width = 160
-image_height = 64
-train_sequences = ["00"]
-val_sequences = []
-"#;
+/// A tiny SparseOcc++ on the kitti-small grid ([`support::tiny_config`]): 2 steps, a checkpoint
+/// after each, no validation.
+static TINY: std::sync::LazyLock<String> =
+    std::sync::LazyLock::new(|| support::tiny_config(2, 1, &[]));
 
 /// CRC-32 of PNG chunks.
 fn crc32(bytes: &[u8]) -> u32 {
@@ -105,19 +49,6 @@ fn png_claiming(w: u32, h: u32) -> Vec<u8> {
     let crc = crc32(&b[12..29]);
     b[29..33].copy_from_slice(&crc.to_be_bytes());
     b
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let t = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &t);
-        } else {
-            std::fs::copy(e.path(), &t).unwrap();
-        }
-    }
 }
 
 /// Every file below `dir` (recursively).
@@ -225,7 +156,7 @@ fn bad_input_table() {
         OsStr::new("00:1,08:1"),
     ]);
     let cfg = root.join("tiny.toml");
-    std::fs::write(&cfg, TINY).unwrap();
+    std::fs::write(&cfg, TINY.as_str()).unwrap();
     let out = root.join("out");
     std::fs::create_dir_all(&out).unwrap();
     let calib = data.join("sequences/08/calib.txt");
@@ -290,7 +221,7 @@ fn bad_input_table() {
     // A run folder without a checkpoint, and one with a truncated model.bin.
     let no_ck = root.join("no_ck");
     std::fs::create_dir_all(&no_ck).unwrap();
-    std::fs::write(no_ck.join("config.toml"), TINY).unwrap();
+    std::fs::write(no_ck.join("config.toml"), TINY.as_str()).unwrap();
     let bad_json = root.join("bad.json");
     std::fs::write(&bad_json, "{ not json").unwrap();
 

@@ -2,82 +2,17 @@
 //! infer (dataset and single image) → eval → bench, and the errors users get for bad input.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_sparseocc"));
-    c.env("CI", "1");
-    c
-}
-
-fn run(args: &[&str]) -> Output {
-    let out = bin().args(args).output().expect("run sparseocc");
-    out
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = run(args);
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "sparseocc {args:?} failed:\n{text}");
-    text
-}
-
-fn fails(args: &[&str]) -> String {
-    let out = run(args);
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(!out.status.success(), "sparseocc {args:?} should fail");
-    assert!(err.contains("error:"), "no error line: {err}");
-    assert!(!err.contains("panicked"), "panicked: {err}");
-    err
-}
+mod support;
+use support::{fails, ok, p};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("sparseocc-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    support::tmp("cli", name)
 }
 
-/// A very small SparseOcc++ on the kitti-small grid.
-const TINY: &str = r#"
-[model]
-kind = "sparseocc++"
-num_classes = 20
-full_dims = [128, 128, 16]
-lss_level = 0
-
-[model.encoder.resnet]
-depth = 18
-base_width = 8
-out_indices = [1]
-
-[model.encoder.fpn]
-out_channels = 16
-
-[model.sparseocc_pp]
-embed_dim = 16
-dca_heads = 2
-keep_ratios = [1.0, 0.1, 0.1]
-
-[train]
-steps = 3
-lr = 1e-3
-checkpoint_every = 2
-
-[data]
-image_width = 160
-image_height = 64
-train_sequences = ["00"]
-val_sequences = ["08"]
-"#;
-
-fn p(x: &Path) -> &str {
-    x.to_str().unwrap()
-}
+/// A very small SparseOcc++ on the kitti-small grid ([`support::tiny_config`]).
+static TINY: std::sync::LazyLock<String> =
+    std::sync::LazyLock::new(|| support::tiny_config(3, 2, &["08"]));
 
 /// `sparseocc infer --checkpoint RUN --data DATA --sequences 08 --out OUT EXTRA...`.
 fn infer_08(run: &Path, data: &Path, out: &Path, extra: &[&str]) -> String {
@@ -102,7 +37,7 @@ fn train_resume_infer_eval_and_bad_input() {
     let data = root.join("data");
     ok(&["synth", "--out", p(&data), "--sequences", "00:2,08:1"]);
     let cfg = root.join("tiny.toml");
-    std::fs::write(&cfg, TINY).unwrap();
+    std::fs::write(&cfg, TINY.as_str()).unwrap();
     let run_dir = root.join("run");
 
     // Train 3 steps (checkpoints at 2 and 3), then resume to 4.

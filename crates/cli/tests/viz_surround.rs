@@ -13,60 +13,25 @@ use occ_geometry::{project_with, Mat4};
 use occ_train::dataset::{DatasetFormat, SurroundDataset};
 use occ_viz::{project_points, ProjectedPoint};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 const W: usize = 352;
 const H: usize = 128;
 const NEAR_M: f64 = 0.5;
 
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_sparseocc"));
-    c.env("CI", "1");
-    c
-}
+mod support;
+use support::{copy_dir, fails_status_1 as fails, ok, p, run};
 
-fn run(args: &[&str]) -> Output {
-    bin().args(args).output().expect("run sparseocc")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = run(args);
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    assert!(o.status.success(), "sparseocc {args:?} failed:\n{text}");
-    text
-}
-
-/// Fails with status 1, one `error:` line, no panic; returns stderr.
-fn fails(args: &[&str]) -> String {
-    let o = run(args);
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert_eq!(o.status.code(), Some(1), "sparseocc {args:?}: {err}");
-    assert!(err.contains("error:"), "no error line: {err}");
-    assert!(!err.contains("panicked"), "panicked: {err}");
-    err
-}
-
+/// A temporary folder removed when dropped.
 struct TempDir(PathBuf);
 impl TempDir {
     fn new(tag: &str) -> Self {
-        let p = std::env::temp_dir().join(format!("sparseocc-vizsur-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
+        TempDir(support::tmp("vizsur", tag))
     }
 }
 impl Drop for TempDir {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
     }
-}
-
-fn p(x: &Path) -> &str {
-    x.to_str().unwrap()
 }
 
 fn synth(root: &Path) {
@@ -77,19 +42,6 @@ fn synth(root: &Path) {
         image_size: Some((W, H)),
     };
     generate(root, &cfg, &mut |_, _| {}).unwrap();
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let t = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &t);
-        } else {
-            std::fs::copy(e.path(), t).unwrap();
-        }
-    }
 }
 
 fn tables(root: &Path) -> NuscenesTables {
