@@ -64,44 +64,10 @@ pub struct InferArgs {
 
 /// Loads a model and its configuration from a run folder (or its checkpoint/ folder).
 pub fn load_checkpoint(path: &Path) -> Result<(RunConfig, VoxelGrid, OccNet<Infer>)> {
-    let run = if path.join("config.toml").exists() {
-        path.to_path_buf()
-    } else if path.file_name().is_some_and(|n| n == "checkpoint")
-        && path
-            .parent()
-            .is_some_and(|p| p.join("config.toml").exists())
-    {
-        path.parent().map(Path::to_path_buf).unwrap_or_default()
-    } else {
-        bail!(
-            "{}: not a training run (no config.toml in it or its parent)",
-            path.display()
-        );
-    };
-    let cfg = RunConfig::load(&run.join("config.toml"))?;
-    let grid_p = run.join("grid.json");
-    let grid: VoxelGrid = serde_json::from_slice(
-        &std::fs::read(&grid_p).with_context(|| format!("{}: cannot read", grid_p.display()))?,
-    )
-    .with_context(|| format!("{}: not a voxel grid", grid_p.display()))?;
-    let device = backend::device();
-    let model: OccNet<Infer> = cfg.model.init(&device)?;
-    let weights = run.join("checkpoint").join("model.bin");
-    let model = occ_train::trainer::load_weights(model, &weights, &device).map_err(|e| {
-        let e = e.to_string();
-        if e.contains("truncated or damaged")
-            || e.contains("not a readable burn record")
-            || e.contains("missing")
-        {
-            anyhow::anyhow!(e)
-        } else {
-            anyhow::anyhow!(
-                "{e} (config {}; the checkpoint does not match it)",
-                run.join("config.toml").display()
-            )
-        }
-    })?;
-    Ok((cfg, grid, model))
+    Ok(occ_train::trainer::load_run::<Infer>(
+        path,
+        &backend::device(),
+    )?)
 }
 
 fn grid_for(format: DatasetFormat, dims: [usize; 3]) -> Result<VoxelGrid> {

@@ -5,10 +5,8 @@
 //!
 //! `cargo run --release -p occ-train --example decode_diag -- RUN_DIR DATA_DIR SEQ [FRAMES]`
 use burn::backend::NdArray;
-use occ_model::OccNet;
 use occ_train::dataset::{collate, Dataset};
 use occ_train::mirror::mirror_sample_y;
-use occ_train::RunConfig;
 use std::path::Path;
 
 type B = NdArray<f32>;
@@ -74,13 +72,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if args.len() < 4 {
         return Err("usage: decode_diag RUN_DIR DATA_DIR SEQ [FRAMES]".into());
     }
-    let run = Path::new(&args[1]);
-    let cfg = RunConfig::load(&run.join("config.toml"))?;
-    let grid: occ_geometry::VoxelGrid =
-        serde_json::from_slice(&std::fs::read(run.join("grid.json"))?)?;
     let device = Default::default();
-    let model: OccNet<B> = cfg.model.init(&device)?;
-    let model = occ_model::load_checked(model, &run.join("checkpoint").join("model.bin"), &device)?;
+    let (cfg, grid, model) = occ_train::trainer::load_run::<B>(Path::new(&args[1]), &device)?;
     let mut ds = Dataset::open(Path::new(&args[2]), &cfg.data, &[args[3].clone()], &[])?;
     // The diagnostic depth oracle reads the LiDAR scan; no other forward pass does.
     ds.set_load_points(true);

@@ -5,6 +5,7 @@
 //! augmentation of step `s` from `(seed, s)`, so a run resumed from a checkpoint sees the same data as
 //! an uninterrupted one.
 
+use crate::config::RunConfig;
 use crate::dataset::{collate, Dataset, Sample};
 use crate::error::TrainError;
 use crate::grads::{clip_global_norm, split_no_decay};
@@ -14,6 +15,7 @@ use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
 use burn::record::{BinFileRecorder, FullPrecisionSettings, Recorder};
 use burn::tensor::backend::AutodiffBackend;
+use occ_geometry::VoxelGrid;
 use occ_model::OccNetwork;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -518,6 +520,54 @@ pub fn load_weights<B: burn::tensor::backend::Backend, M: burn::module::Module<B
             TrainError::Checkpoint(text)
         }
     })
+}
+
+/// A trained run loaded from its folder (or its `checkpoint/` folder): the run configuration, the
+/// label grid it was trained on (`grid.json`) and the model with the checkpoint's weights. Every
+/// error names the file (a missing `config.toml`, an unreadable grid, weights that do not match
+/// the configuration).
+pub fn load_run<B: occ_sparse::SparseConvBackend>(
+    path: &Path,
+    device: &B::Device,
+) -> Result<(RunConfig, VoxelGrid, occ_model::OccNet<B>), TrainError> {
+    let run = if path.join("config.toml").exists() {
+        path.to_path_buf()
+    } else if path.file_name().is_some_and(|n| n == "checkpoint")
+        && path
+            .parent()
+            .is_some_and(|p| p.join("config.toml").exists())
+    {
+        path.parent().map(Path::to_path_buf).unwrap_or_default()
+    } else {
+        return Err(TrainError::Checkpoint(format!(
+            "{}: not a training run (no config.toml in it or its parent)",
+            path.display()
+        )));
+    };
+    let cfg_path = run.join("config.toml");
+    let cfg = RunConfig::load(&cfg_path)?;
+    let grid_p = run.join("grid.json");
+    let text = std::fs::read(&grid_p).map_err(io_err(&grid_p))?;
+    let grid: VoxelGrid = serde_json::from_slice(&text).map_err(|e| {
+        TrainError::Checkpoint(format!("{}: not a voxel grid: {e}", grid_p.display()))
+    })?;
+    let model: occ_model::OccNet<B> = cfg.model.init(device)?;
+    let weights = run.join("checkpoint").join("model.bin");
+    let model = load_weights(model, &weights, device).map_err(|e| {
+        let e = e.to_string();
+        if e.contains("truncated or damaged")
+            || e.contains("not a readable burn record")
+            || e.contains("missing")
+        {
+            TrainError::Checkpoint(e)
+        } else {
+            TrainError::Checkpoint(format!(
+                "{e} (config {}; the checkpoint does not match it)",
+                cfg_path.display()
+            ))
+        }
+    })?;
+    Ok((cfg, grid, model))
 }
 
 fn first_line(s: &str) -> &str {
