@@ -757,8 +757,16 @@ fn sigkill_during_training_then_resume() {
                 finished = Some(st);
                 break;
             }
+            // A resumed run: kill once it has logged a step past its checkpoint. A fresh run: once
+            // its first checkpoint exists (the log may still hold a killed fresh run's rows, and a
+            // fresh run killed before any checkpoint has nothing to resume, correctly).
             let (_, logged) = log_steps(&run_dir);
-            if logged.last().is_some_and(|&s| s > base) {
+            let progressed = if resume {
+                logged.last().is_some_and(|&s| s > base)
+            } else {
+                state_step().is_some()
+            };
+            if progressed {
                 break;
             }
             assert!(
