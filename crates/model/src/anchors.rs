@@ -32,12 +32,19 @@
 
 use crate::batch::Batch;
 use crate::dca::ViewHits;
-use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
+use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCrossAttention};
 use crate::depth_gate::DepthMap;
 use crate::depth_oracle::DepthOracle;
 
 /// The gate of every hit: the learned depth map's ([`crate::depth_gate`]), the diagnostic oracle's
 /// ([`crate::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
+/// Height (metres, LiDAR frame) of the column bases of option `dca_column_base`: the centre of the
+/// lowest layer of the full-resolution grid `full` (the synthetic ground; 0.37 m under SemanticKITTI's
+/// ground at -1.73 m).
+pub(crate) fn column_floor_z_m(full: &occ_geometry::VoxelGrid) -> f64 {
+    full.origin_m[2] + 0.5 * full.voxel_size_m
+}
+
 pub(crate) fn combined_gate<B: Backend>(
     depth: Option<&DepthMap<B>>,
     oracle: Option<&DepthOracle>,
@@ -151,6 +158,9 @@ pub struct AnchorStage<B: Backend> {
     pub dca: DeformableCrossAttention<B>,
     /// Occupancy / class MLP.
     pub score: ScoreHead<B>,
+    /// Not in the paper (`dca_column_base`): a second DCA block whose reference points are the
+    /// projections of the candidates' column bases ([`crate::dca::project_column_bases`]).
+    pub base_dca: Option<DeformableCrossAttention<B>>,
 }
 
 /// Occupancy score `logsumexp(logits[:, 1..]) - logits[:, 0]` (log-odds of "not empty") on the host.
@@ -233,6 +243,10 @@ pub struct AnchorGeneratorConfig {
     /// Fraction of the candidates kept at levels 0, 1, 2 (see the module docs).
     #[config(default = "vec![1.0, 0.2, 0.1]")]
     pub keep_ratios: Vec<f64>,
+    /// Not in the paper: follow every stage's DCA by a second DCA block sampling at the projection of
+    /// each candidate's column base (see [`crate::dca::project_column_bases`]).
+    #[config(default = false)]
+    pub column_base: bool,
 }
 
 impl AnchorGeneratorConfig {
@@ -308,6 +322,7 @@ impl AnchorGeneratorConfig {
                 .map(|_| AnchorStage {
                     dca: self.dca.init(device),
                     score: ScoreHead::new(d, self.num_classes, device),
+                    base_dca: self.column_base.then(|| self.dca.init(device)),
                 })
                 .collect(),
             mode: self.mode,
@@ -378,7 +393,20 @@ impl<B: Backend> AnchorGenerator<B> {
         let gate = combined_gate(depth, oracle, &hits, grid.voxel_size_m, &device)?;
         let x = stage
             .dca
-            .forward_gated(feats, pos, &hits, images, strides, gate)?;
+            .forward_gated(feats, pos.clone(), &hits, images, strides, gate)?;
+        let x = match &stage.base_dca {
+            Some(base) => {
+                let hits = project_column_bases(
+                    &coords,
+                    &grid,
+                    &batch.cameras,
+                    batch.image_hw(),
+                    column_floor_z_m(&batch.grid),
+                )?;
+                base.forward(x, pos, &hits, images, strides)?
+            }
+            None => x,
+        };
         let logits = stage.score.forward(x.clone());
         Ok((
             x,

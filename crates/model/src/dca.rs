@@ -212,6 +212,39 @@ pub fn project_queries(
     cameras: &[Vec<CameraInput>],
     image_hw: (usize, usize),
 ) -> Result<ViewHits, ModelError> {
+    project_points(coords, grid, cameras, image_hw, |c| c)
+}
+
+/// Not in the paper (option `dca_column_base`): like [`project_queries`], but each voxel is represented
+/// by the base of its vertical column, its centre moved down to the height `floor_z_m` (metres, LiDAR
+/// frame). The pixel of a voxel's column base shows what stands on the ground under it: an object's
+/// bottom when the voxel is over the object's footprint, the ground in front of it otherwise. This is
+/// the depth cue of a ground-standing object that the voxel's own pixel lacks (every voxel of one ray
+/// projects to the same pixel), the idea of BEVFormer's pillar reference points.
+/// `depth_m` is the depth of the base point.
+pub fn project_column_bases(
+    coords: &[Coord],
+    grid: &VoxelGrid,
+    cameras: &[Vec<CameraInput>],
+    image_hw: (usize, usize),
+    floor_z_m: f64,
+) -> Result<ViewHits, ModelError> {
+    if !floor_z_m.is_finite() {
+        return Err(ModelError::Input(format!(
+            "DCA: column-base height {floor_z_m} is not finite"
+        )));
+    }
+    project_points(coords, grid, cameras, image_hw, |c| [c[0], c[1], floor_z_m])
+}
+
+/// [`project_queries`] with the projected point of each voxel given by `point_of(centre)`.
+fn project_points(
+    coords: &[Coord],
+    grid: &VoxelGrid,
+    cameras: &[Vec<CameraInput>],
+    image_hw: (usize, usize),
+    point_of: impl Fn([f64; 3]) -> [f64; 3],
+) -> Result<ViewHits, ModelError> {
     let num_views = cameras.first().map_or(0, Vec::len);
     if cameras.iter().any(|c| c.len() != num_views) {
         return Err(ModelError::Input(
@@ -245,7 +278,7 @@ pub fn project_queries(
                     ))
                 })?;
         }
-        let centre = grid.voxel_center_m(ijk);
+        let centre = point_of(grid.voxel_center_m(ijk));
         for (v, cam) in cameras[b].iter().enumerate() {
             if let Some([u, vv, d]) = project_with(&cam.img_from_lidar, centre) {
                 if u >= 0.0 && vv >= 0.0 && u < w && vv < h {

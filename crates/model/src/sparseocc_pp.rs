@@ -13,10 +13,10 @@
 //! bins / regression, propagation on / off ("off" = the "sparse anchor voxel only" row: the final
 //! stage runs on the anchors themselves and no SCF heads exist).
 
-use crate::anchors::combined_gate;
+use crate::anchors::{column_floor_z_m, combined_gate};
 use crate::anchors::{AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction};
 use crate::batch::Batch;
-use crate::dca::{project_queries, DcaConfig, DeformableCrossAttention};
+use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCrossAttention};
 use crate::depth_gate::{DepthGate, DepthGateConfig, DepthMap};
 use crate::depth_oracle::DepthOracle;
 use crate::error::ModelError;
@@ -137,6 +137,13 @@ pub struct SparseOccPPConfig {
     /// ([`crate::depth_oracle`]).
     #[config(default = false)]
     pub depth_oracle: bool,
+    /// Not in the paper: follow every DCA (the three anchor stages and the final one) by a second DCA
+    /// block whose reference points are the projections of the voxels' column bases, the lowest layer
+    /// of the grid under each voxel ([`crate::dca::project_column_bases`]): the pixel where what
+    /// stands under a voxel meets the ground, the depth cue of ground-standing objects (BEVFormer's
+    /// pillar reference points). About twice the DCA cost.
+    #[config(default = false)]
+    pub dca_column_base: bool,
 }
 
 impl SparseOccPPConfig {
@@ -154,6 +161,7 @@ impl SparseOccPPConfig {
         AnchorGeneratorConfig::new(self.embed_dim, self.num_classes, self.full_dims, self.dca())
             .with_mode(self.anchor_mode)
             .with_keep_ratios(self.keep_ratios.clone())
+            .with_column_base(self.dca_column_base)
     }
 
     /// The SCF heads' configuration.
@@ -223,6 +231,7 @@ impl SparseOccPPConfig {
             anchors: self.anchor_config().init(device),
             scf: self.propagation.then(|| self.scf_config().init(device)),
             dca: self.dca().init(device),
+            base_dca: self.dca_column_base.then(|| self.dca().init(device)),
             unet: unet.init(device),
             head: LinearConfig::new(c0, self.num_classes.max(1)).init(device),
             subvoxel: (self.output == OutputResolution::SubVoxel)
@@ -254,6 +263,8 @@ pub struct SparseOccPP<B: Backend> {
     pub scf: Option<ScfHead<B>>,
     /// DCA on the completed voxel set.
     pub dca: DeformableCrossAttention<B>,
+    /// Column-base DCA after it (present with `dca_column_base`, not in the paper).
+    pub base_dca: Option<DeformableCrossAttention<B>>,
     /// Sparse U-Net.
     pub unet: SparseUNet<B>,
     /// Final classifier (of the `1/2` voxels, or of their children with the sub-voxel head).
@@ -402,9 +413,27 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             grid.voxel_size_m,
             &device,
         )?;
-        let x =
-            self.dca
-                .forward_gated(completed.feats().clone(), pos, &hits, feats, strides, gate)?;
+        let x = self.dca.forward_gated(
+            completed.feats().clone(),
+            pos.clone(),
+            &hits,
+            feats,
+            strides,
+            gate,
+        )?;
+        let x = match &self.base_dca {
+            Some(base) => {
+                let hits = project_column_bases(
+                    completed.coords(),
+                    &grid,
+                    &batch.cameras,
+                    batch.image_hw(),
+                    column_floor_z_m(&batch.grid),
+                )?;
+                base.forward(x, pos, &hits, feats, strides)?
+            }
+            None => x,
+        };
         crate::profile::mark("dca", &x);
         let x = self.unet.forward(completed.with_feats(x)?)?;
         crate::profile::mark("unet", x.feats());

@@ -6,7 +6,7 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use occ_geometry::transform_point;
-use occ_model::dca::{project_queries, DcaConfig};
+use occ_model::dca::{project_column_bases, project_queries, DcaConfig};
 use pp_common::*;
 
 type B64 = burn::backend::NdArray<f64>;
@@ -316,4 +316,68 @@ fn dca_block_shapes_and_bad_inputs() {
     assert!(project_queries(&[[0, 32, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
     assert!(project_queries(&[[1, 0, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
     assert!(DcaConfig::new(8, 4).with_num_heads(3).validate().is_err());
+}
+
+/// `dca_column_base` (not in the paper): every voxel of one vertical column gets the reference point
+/// and depth of the column's base `(x, y, floor)`, projected like a voxel centre; a base outside the
+/// image drops the view even when the voxel itself is seen; a non-finite floor is refused.
+#[test]
+fn column_bases_project_the_point_under_each_voxel() {
+    let g = grid();
+    let cams = cameras(1);
+    let floor = g.origin_m[2] + 0.5 * g.voxel_size_m;
+    // One column (x 25, y 14) at three heights, and one voxel near camera 1.
+    let coords = vec![
+        [0, 25, 14, 0],
+        [0, 25, 14, 4],
+        [0, 25, 14, 7],
+        [0, 9, 20, 2],
+    ];
+    let hits = project_column_bases(&coords, &g, &cams, IMG_HW, floor).unwrap();
+    let own = project_queries(&coords, &g, &cams, IMG_HW).unwrap();
+    let mut by_query: Vec<Vec<(u32, [f64; 2], f64)>> = vec![Vec::new(); coords.len()];
+    for h in 0..hits.len() {
+        by_query[hits.query[h] as usize].push((hits.image[h], hits.uv[h], hits.depth_m[h]));
+    }
+    for (q, c) in coords.iter().enumerate() {
+        let centre = g.voxel_center_m([c[1] as usize, c[2] as usize, c[3] as usize]);
+        let base = [centre[0], centre[1], floor];
+        let mut expected = Vec::new();
+        for (v, cam) in cams[0].iter().enumerate() {
+            let t = transform_point(&cam.img_from_lidar, base);
+            if t[2] <= 1e-3 {
+                continue;
+            }
+            let (u, vv) = (t[0] / t[2], t[1] / t[2]);
+            if u >= 0.0 && vv >= 0.0 && u < IMG_HW.1 as f64 && vv < IMG_HW.0 as f64 {
+                expected.push((v as u32, [u, vv], t[2]));
+            }
+        }
+        assert_eq!(by_query[q].len(), expected.len(), "voxel {q}");
+        for (got, want) in by_query[q].iter().zip(&expected) {
+            assert_eq!(got.0, want.0, "voxel {q}");
+            for k in 0..2 {
+                assert!(
+                    (got.1[k] - want.1[k]).abs() < 1e-9,
+                    "voxel {q}: {got:?} {want:?}"
+                );
+            }
+            assert!((got.2 - want.2).abs() < 1e-9);
+        }
+        assert_eq!(hits.views_per_query[q] as usize, expected.len());
+    }
+    // The three voxels of the column share one reference point per view; their own pixels differ.
+    assert_eq!(by_query[0], by_query[1]);
+    assert_eq!(by_query[1], by_query[2]);
+    let own_uv = |q: u32| {
+        (0..own.len())
+            .find(|&h| own.query[h] == q && own.image[h] == 0)
+            .map(|h| own.uv[h])
+    };
+    assert_ne!(own_uv(0), own_uv(2));
+    // A floor far below the cameras moves every base out of the 32-pixel-high image.
+    let low = project_column_bases(&coords, &g, &cams, IMG_HW, -100.0).unwrap();
+    assert!(low.is_empty());
+    assert!(!own.is_empty());
+    assert!(project_column_bases(&coords, &g, &cams, IMG_HW, f64::NAN).is_err());
 }

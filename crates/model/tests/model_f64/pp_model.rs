@@ -106,6 +106,35 @@ fn gradients_reach_every_parameter() {
     assert!(n > 50, "only {n} parameters visited");
 }
 
+/// `dca_column_base` (not in the paper): a column-base DCA block follows each of the four DCAs, and the
+/// gradient reaches every parameter, the new blocks' included.
+#[test]
+fn column_base_dca_is_built_at_every_dca_and_trained() {
+    let cfg = tiny_config().with_dca_column_base(true);
+    let (model, out) = run::<AD>(&cfg, 1, 21);
+    assert!(model.base_dca.is_some());
+    assert!(model.anchors.stages.iter().all(|s| s.base_dca.is_some()));
+    let plain = tiny_config();
+    let (plain_model, _) = run::<AD>(&plain, 1, 21);
+    assert!(plain_model.base_dca.is_none());
+    assert!(plain_model
+        .anchors
+        .stages
+        .iter()
+        .all(|s| s.base_dca.is_none()));
+    assert!(model.num_params() > plain_model.num_params());
+    let grads = sum_all(&out).backward();
+    let n = assert_all_grads(&model, &grads);
+    let n_plain = {
+        let (m, o) = run::<AD>(&plain, 1, 21);
+        assert_all_grads(&m, &sum_all(&o).backward())
+    };
+    assert!(
+        n > n_plain,
+        "{n} parameters visited, {n_plain} without the option"
+    );
+}
+
 #[test]
 fn ablations_run_and_train() {
     let variants = [
