@@ -79,7 +79,11 @@ mod tests {
             .init::<B>(&Default::default());
         enable(true);
         let out = conv.forward(sites()).unwrap();
-        assert_eq!(out.num_active(), 3, "(0,0,0) and (1,0,0) share an output cell");
+        assert_eq!(
+            out.num_active(),
+            3,
+            "(0,0,0) and (1,0,0) share an output cell"
+        );
         assert_eq!(take(), 4 * 2 * 5);
         enable(false);
     }
