@@ -9,6 +9,11 @@
 //! (timing does not depend on them, except through the number of voxels a trained model keeps — see
 //! the notes in BENCHMARKS.md). Image decoding is excluded from the timings; the forward pass
 //! includes everything from the image tensor to the class logits, and the dense class grid.
+//!
+//! FLOPs: the profiled passes also count every stage's multiply-adds ([`occ_model::profile`]; sparse
+//! convs from their pair counts, dense convs and linears from shapes, DCA from its samples, attention
+//! from its sizes), reported as GFLOP = 2 x MACs / 1e9, so that a stage's GFLOP/s compares with the
+//! machine's sgemm rate, measured in the same run by [`sgemm_gflops`].
 
 use crate::backend::{self, Infer};
 use anyhow::{bail, Context, Result};
@@ -98,6 +103,33 @@ pub struct BenchResult {
     /// Where the time goes: mean ms per stage over the profiled frames (a separate pass that
     /// synchronises after each stage; not part of the latency figures above).
     pub profile_ms: Vec<(String, f64)>,
+    /// Counted work of one forward pass: GFLOP (2 FLOPs per multiply-add).
+    pub gflops: f64,
+    /// `gflops` over the median latency (GFLOP/s).
+    pub gflops_per_s: f64,
+    /// `gflops` over the profiled passes' mean total time (GFLOP/s; comparable with the stages').
+    pub profile_gflops_per_s: f64,
+    /// Per stage of the profiled passes: mean ms, GFLOP, GFLOP/s and the shares of the total.
+    pub profile_stages: Vec<StageProfile>,
+    /// GFLOP of one forward pass by kind of op (`linear`, `conv2d`, `sparse_conv`, `dca_sampling`, ...).
+    pub gflops_by_op: Vec<(String, f64)>,
+}
+
+/// One stage of the profiled passes.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct StageProfile {
+    /// Stage name.
+    pub stage: String,
+    /// Mean wall time (ms).
+    pub ms: f64,
+    /// Counted work (GFLOP, 2 per multiply-add).
+    pub gflops: f64,
+    /// `gflops` over `ms` (GFLOP/s).
+    pub gflops_per_s: f64,
+    /// Share of the pass's time.
+    pub time_share: f64,
+    /// Share of the pass's FLOPs.
+    pub flop_share: f64,
 }
 
 /// Stage names under which the models report the voxels they predict on.
@@ -211,8 +243,10 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         }
         stages = out.stats;
     }
-    // Profiled pass: synchronise after every stage (this changes overlap, so it is kept apart).
-    let mut sums: Vec<(String, f64)> = Vec::new();
+    // Profiled pass: synchronise after every stage (this changes overlap, so it is kept apart), and
+    // count the multiply-adds of every stage (the same in every pass: same input, same network).
+    let mut sums: Vec<(String, f64, u64)> = Vec::new();
+    let mut ops: Vec<(&'static str, u64)> = Vec::new();
     let nprof = args.frames.clamp(1, 3);
     for _ in 0..nprof {
         occ_model::profile::enable(true);
@@ -220,25 +254,52 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         let mut batch = collate::<Infer>(std::slice::from_ref(&sample), grid, &device)?;
         batch.target = None;
         let out = model.forward(&batch)?;
-        let mut stages = occ_model::profile::take();
-        occ_model::profile::enable(false);
+        let stages = occ_model::profile::take();
         let dense = out.dense_prediction(1, grid.dims);
         std::hint::black_box(&dense);
-        let known: f64 = stages.iter().map(|s| s.1).sum();
+        let rest_macs = occ_model::profile::take_unmarked_macs();
+        ops = occ_model::profile::take_ops();
+        occ_model::profile::enable(false);
+        let known: f64 = stages.iter().map(|s| s.ms).sum();
+        let mut stages: Vec<(String, f64, u64)> =
+            stages.into_iter().map(|s| (s.name, s.ms, s.macs)).collect();
         stages.push((
             "other (upload, argmax, grid)".into(),
             t0.elapsed().as_secs_f64() * 1e3 - known,
+            rest_macs,
         ));
-        for (k, v) in stages {
-            match sums.iter_mut().find(|(n, _)| *n == k) {
-                Some(e) => e.1 += v,
-                None => sums.push((k, v)),
+        for (k, v, m) in stages {
+            match sums.iter_mut().find(|(n, _, _)| *n == k) {
+                Some(e) => {
+                    e.1 += v;
+                    e.2 = m;
+                }
+                None => sums.push((k, v, m)),
             }
         }
     }
+    let gflop = |macs: u64| 2.0 * macs as f64 / 1e9;
     let profile_ms: Vec<(String, f64)> = sums
-        .into_iter()
-        .map(|(k, v)| (k, v / nprof as f64))
+        .iter()
+        .map(|(k, v, _)| (k.clone(), v / nprof as f64))
+        .collect();
+    let total_ms: f64 = profile_ms.iter().map(|s| s.1).sum();
+    let total_gflops: f64 = sums.iter().map(|s| gflop(s.2)).sum();
+    let profile_stages: Vec<StageProfile> = sums
+        .iter()
+        .zip(&profile_ms)
+        .map(|((k, _, m), (_, ms))| StageProfile {
+            stage: k.clone(),
+            ms: *ms,
+            gflops: gflop(*m),
+            gflops_per_s: gflop(*m) / (ms / 1e3).max(1e-9),
+            time_share: ms / total_ms.max(1e-9),
+            flop_share: gflop(*m) / total_gflops.max(1e-12),
+        })
+        .collect();
+    let gflops_by_op = ops
+        .iter()
+        .map(|&(k, m)| (k.to_string(), gflop(m)))
         .collect();
     let mut sorted = latency.clone();
     sorted.sort_by(f64::total_cmp);
@@ -261,6 +322,11 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         stages,
         timing_covers: "image tensor upload + forward + argmax to a dense class grid; image decoding and resizing excluded; batch 1".into(),
         profile_ms,
+        gflops: total_gflops,
+        gflops_per_s: total_gflops / (median / 1e3),
+        profile_gflops_per_s: total_gflops / (total_ms / 1e3).max(1e-9),
+        profile_stages,
+        gflops_by_op,
     })
 }
 
@@ -310,6 +376,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     let synth = SynthConfig::new(preset, 7, vec![("00".to_string(), 1)]);
     synthetic::generate(&tmp, &synth, &mut |_, _| {})?;
     let result = (|| -> Result<()> {
+        eprintln!("bench: sgemm rate ({SGEMM_N}x{SGEMM_N} f32 matmuls)");
+        let sgemm = sgemm_gflops(SGEMM_N, SGEMM_REPS);
         let mut results = Vec::new();
         for m in &args.models {
             ModelKind::parse(m)?;
@@ -319,7 +387,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             );
             results.push(run_child(args, m, &tmp, 1, args.frames)?);
         }
-        print_table(&results);
+        print_table(&results, sgemm);
         let pp = results
             .iter()
             .find(|r| r.model == "sparseocc++")
@@ -328,6 +396,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             "config": args.config,
             "date": chrono_free_date(),
             "host": host_description(),
+            "sgemm_gflops": sgemm,
+            "sgemm_size": SGEMM_N,
             "results": results,
         });
         if let Some(pp) = pp {
@@ -407,14 +477,41 @@ fn scan(args: &BenchArgs, data: &Path, prefix: &Path) -> Result<()> {
     Ok(())
 }
 
-fn print_table(results: &[BenchResult]) {
+/// Side of the square matrices of the sgemm measurement.
+const SGEMM_N: usize = 2048;
+/// Timed products of the sgemm measurement (after one warm-up).
+const SGEMM_REPS: usize = 3;
+
+/// The machine's f32 matrix-product rate (GFLOP/s, `2 n^3` per product): the median of `reps` timed
+/// `[n, n] x [n, n]` products through the bench backend's `matmul` (burn NdArray on the CPU, the
+/// product the models' linear layers run), after one warm-up; each timing includes reading one value
+/// back, so that the product has finished.
+pub fn sgemm_gflops(n: usize, reps: usize) -> f64 {
+    use burn::prelude::*;
+    let device = backend::device();
+    let a = Tensor::<Infer, 2>::random([n, n], burn::tensor::Distribution::Default, &device);
+    let b = Tensor::<Infer, 2>::random([n, n], burn::tensor::Distribution::Default, &device);
+    let run = || {
+        let t0 = Instant::now();
+        let c = a.clone().matmul(b.clone());
+        let v: f32 = c.slice([0..1, 0..1]).into_scalar().elem();
+        std::hint::black_box(v);
+        t0.elapsed().as_secs_f64()
+    };
+    run();
+    let mut t: Vec<f64> = (0..reps.max(1)).map(|_| run()).collect();
+    t.sort_by(f64::total_cmp);
+    2.0 * (n as f64).powi(3) / 1e9 / percentile(&t, 0.5)
+}
+
+fn print_table(results: &[BenchResult], sgemm: f64) {
     let pp = results
         .iter()
         .find(|r| r.model == "sparseocc++")
         .map(|r| r.median_ms);
     println!(
-        "{:<12} {:>10} {:>10} {:>8} {:>11} {:>9}  final voxels",
-        "model", "median ms", "p10-p90", "FPS", "peak MiB", "vs ++"
+        "{:<12} {:>10} {:>10} {:>8} {:>11} {:>9} {:>8} {:>8} {:>7}  final voxels",
+        "model", "median ms", "p10-p90", "FPS", "peak MiB", "vs ++", "GFLOP", "GFLOP/s", "sgemm"
     );
     for r in results {
         let fin = r
@@ -425,7 +522,7 @@ fn print_table(results: &[BenchResult]) {
             .map(|(_, v)| v.to_string())
             .unwrap_or_default();
         println!(
-            "{:<12} {:>10.1} {:>10} {:>8.2} {:>11.0} {:>9}  {}",
+            "{:<12} {:>10.1} {:>10} {:>8.2} {:>11.0} {:>9} {:>8.1} {:>8.1} {:>6.0}%  {}",
             r.model,
             r.median_ms,
             format!("{:.0}-{:.0}", r.p10_ms, r.p90_ms),
@@ -433,16 +530,53 @@ fn print_table(results: &[BenchResult]) {
             r.peak_rss_mib,
             pp.map(|p| format!("{:.2}x", r.median_ms / p))
                 .unwrap_or_default(),
+            r.gflops,
+            r.gflops_per_s,
+            100.0 * r.gflops_per_s / sgemm,
             fin
         );
     }
+    println!(
+        "sgemm ({SGEMM_N}x{SGEMM_N} f32, this run): {sgemm:.1} GFLOP/s; GFLOP = 2 x multiply-adds"
+    );
     for r in results {
-        let p: Vec<String> = r
-            .profile_ms
+        println!(
+            "  {} per stage (profiled passes, synchronised after each stage):",
+            r.model
+        );
+        println!(
+            "    {:<30} {:>9} {:>7} {:>9} {:>7} {:>9} {:>7}",
+            "stage", "ms", "time", "GFLOP", "FLOPs", "GFLOP/s", "sgemm"
+        );
+        for s in &r.profile_stages {
+            println!(
+                "    {:<30} {:>9.1} {:>6.1}% {:>9.2} {:>6.1}% {:>9.1} {:>6.0}%",
+                s.stage,
+                s.ms,
+                100.0 * s.time_share,
+                s.gflops,
+                100.0 * s.flop_share,
+                s.gflops_per_s,
+                100.0 * s.gflops_per_s / sgemm
+            );
+        }
+        let ms: f64 = r.profile_stages.iter().map(|s| s.ms).sum();
+        println!(
+            "    {:<30} {:>9.1} {:>6.1}% {:>9.2} {:>6.1}% {:>9.1} {:>6.0}%",
+            "total",
+            ms,
+            100.0,
+            r.gflops,
+            100.0,
+            r.profile_gflops_per_s,
+            100.0 * r.profile_gflops_per_s / sgemm
+        );
+        let ops: Vec<String> = r
+            .gflops_by_op
             .iter()
-            .map(|(k, v)| format!("{k} {v:.1}"))
+            .map(|(k, g)| format!("{k} {g:.2}"))
             .collect();
-        println!("  {} profile (ms): {}", r.model, p.join(", "));
+        println!("    GFLOP by op: {}", ops.join(", "));
     }
     if let Some(r) = results.first() {
         println!(

@@ -443,10 +443,33 @@ encoder_channels = [8]
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let results = v["results"].as_array().unwrap();
     assert_eq!(results.len(), 3);
+    assert!(v["sgemm_gflops"].as_f64().unwrap() > 0.0);
     for r in results {
         assert!(r["median_ms"].as_f64().unwrap() > 0.0);
         assert!(r["peak_rss_mib"].as_f64().unwrap() > 0.0);
         assert!(!r["profile_ms"].as_array().unwrap().is_empty());
+        // FLOPs: every model counts work, the stages add up to the total, and so do the ops; every
+        // model runs the image encoder's conv2d and sparse (or all-active) 3D convs.
+        let total = r["gflops"].as_f64().unwrap();
+        assert!(
+            total > 0.0 && r["gflops_per_s"].as_f64().unwrap() > 0.0,
+            "{r}"
+        );
+        let stages = r["profile_stages"].as_array().unwrap();
+        let by_stage: f64 = stages.iter().map(|s| s["gflops"].as_f64().unwrap()).sum();
+        assert!((by_stage - total).abs() <= 1e-9 * total, "{r}");
+        let ops = r["gflops_by_op"].as_array().unwrap();
+        let by_op: f64 = ops.iter().map(|o| o[1].as_f64().unwrap()).sum();
+        assert!((by_op - total).abs() <= 1e-9 * total, "{r}");
+        for op in ["conv2d", "sparse_conv", "linear"] {
+            assert!(
+                ops.iter()
+                    .any(|o| o[0] == op && o[1].as_f64().unwrap() > 0.0),
+                "{op} missing: {r}"
+            );
+        }
+        let enc = stages.iter().find(|s| s["stage"] == "encoder").unwrap();
+        assert!(enc["gflops"].as_f64().unwrap() > 0.0, "{r}");
     }
     let _ = std::fs::remove_dir_all(&root);
 }

@@ -124,7 +124,7 @@ impl<B: Backend> PositionEncoding<B> {
             }
         }
         let x = Tensor::<B, 2>::from_data(TensorData::new(v, [coords.len(), 3]), device);
-        self.fc2.forward(relu(self.fc1.forward(x)))
+        crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
     }
 }
 
@@ -147,7 +147,7 @@ impl<B: Backend> ScoreHead<B> {
     }
     /// `[N, D]` → logits `[N, num_classes]`.
     pub fn forward(&self, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        self.fc2.forward(relu(self.fc1.forward(x)))
+        crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
     }
 }
 

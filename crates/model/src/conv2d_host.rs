@@ -40,6 +40,20 @@ pub fn conv_bn<B: Backend>(
     x: Tensor<B, 4>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
+    let out = conv_bn_any(conv, bn, x, apply_relu);
+    if crate::profile::counting() {
+        crate::profile::add_conv2d(conv.weight.dims(), out.shape().num_elements());
+    }
+    out
+}
+
+/// [`conv_bn`] without the MAC count.
+fn conv_bn_any<B: Backend>(
+    conv: &Conv2d<B>,
+    bn: Option<&BatchNorm<B>>,
+    x: Tensor<B, 4>,
+    apply_relu: bool,
+) -> Tensor<B, 4> {
     if let Some(out) = conv_bn_host(conv, bn, &x, apply_relu) {
         return out;
     }

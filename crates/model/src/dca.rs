@@ -322,16 +322,23 @@ impl<B: Backend> DeformableCrossAttention<B> {
         self.embed_dim
     }
 
+    /// Multiply-adds of the sampling for `num_hits` (query, view) hits: per hit, head, level and
+    /// point, the four bilinear corners of each of the head's `D / M` channels, each one
+    /// multiply-add with the attention weight folded into the corner weight (as the host loop does):
+    /// `hits * L * N_s * D * 4`. The projections (value, offsets, weights, output, FFN) are counted
+    /// by their linear layers.
+    pub fn sampling_macs(&self, num_hits: usize) -> u64 {
+        (num_hits * self.num_levels * self.num_points * self.embed_dim * 4) as u64
+    }
+
     /// Sampling offsets `[N, M, L, N_s, 2]` (feature pixels, `(x, y)`) and softmax attention weights
     /// `[N, M, L, N_s]` (summing to 1 over `L·N_s` per head) predicted from `query [N, D]`.
     pub fn sampling(&self, query: Tensor<B, 2>) -> (Tensor<B, 5>, Tensor<B, 4>) {
         let n = query.dims()[0];
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
-        let offsets = self
-            .sampling_offsets
-            .forward(query.clone())
-            .reshape([n, m, l, p, 2]);
-        let logits = self.attention_weights.forward(query).reshape([n, m, l * p]);
+        let offsets =
+            crate::profile::linear(&self.sampling_offsets, query.clone()).reshape([n, m, l, p, 2]);
+        let logits = crate::profile::linear(&self.attention_weights, query).reshape([n, m, l * p]);
         let weights = softmax(logits, 2).reshape([n, m, l, p]);
         (offsets, weights)
     }
@@ -342,8 +349,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         let m = self.num_heads;
         let dh = self.embed_dim / m;
         let rows = feats.permute([0, 2, 3, 1]).reshape([n * h * w, c]);
-        self.value_proj
-            .forward(rows)
+        crate::profile::linear(&self.value_proj, rows)
             .reshape([n, h, w, m, dh])
             .permute([0, 3, 4, 1, 2])
             .reshape([n * m, dh, h, w])
@@ -435,6 +441,9 @@ impl<B: Backend> DeformableCrossAttention<B> {
                 )));
             }
         }
+        if crate::profile::counting() {
+            crate::profile::add_macs("dca_sampling", self.sampling_macs(hits.len()));
+        }
         if crate::host_data::is_host_backend::<B>() {
             self.aggregate_host(query, hits, feats, strides, gate)
         } else if crate::host_data::is_host_autodiff::<B>() {
@@ -504,7 +513,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
             .map(|f| {
                 let [bv, c, h, w] = f.dims();
                 let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-                self.value_proj.forward(rows)
+                crate::profile::linear(&self.value_proj, rows)
             })
             .collect();
         Tensor::cat(rows, 0)
@@ -671,8 +680,13 @@ impl<B: Backend> DeformableCrossAttention<B> {
     ) -> Result<Tensor<B, 2>, ModelError> {
         let attn = self.aggregate_gated(feats.clone() + pos, hits, images, strides, gate)?;
         crate::profile::trace_mark("dca sampling", &attn);
-        let x = self.norm1.forward(feats + self.output_proj.forward(attn));
-        let y = self.ffn2.forward(relu(self.ffn1.forward(x.clone())));
+        let x = self
+            .norm1
+            .forward(feats + crate::profile::linear(&self.output_proj, attn));
+        let y = crate::profile::linear(
+            &self.ffn2,
+            relu(crate::profile::linear(&self.ffn1, x.clone())),
+        );
         Ok(self.norm2.forward(x + y))
     }
 }
@@ -681,6 +695,60 @@ impl<B: Backend> DeformableCrossAttention<B> {
 mod tests {
     use super::*;
     type B64 = burn::backend::NdArray<f64>;
+
+    /// The MACs one DCA block counts, against a hand count: D = 8, C = 4, M = 2 heads, L = 2 levels,
+    /// N_s = 3 points, FFN 8 → 16 → 8; 2 queries, query 0 seen by both images, query 1 by one
+    /// (3 hits); level maps 6x5 and 3x3 on 2 images.
+    #[test]
+    fn block_macs_match_a_hand_count() {
+        let device = Default::default();
+        let dca = DcaConfig::new(8, 4)
+            .with_num_heads(2)
+            .with_num_levels(2)
+            .with_num_points(3)
+            .with_ffn_ratio(2)
+            .init::<B64>(&device);
+        let hits = ViewHits {
+            num_queries: 2,
+            num_images: 2,
+            query: vec![0, 1, 0],
+            image: vec![0, 0, 1],
+            slot: vec![0, 1, 0],
+            uv: vec![[5.0, 7.0], [11.0, 3.0], [2.0, 20.0]],
+            depth_m: vec![4.0, 6.0, 5.0],
+            views_per_query: vec![2, 1],
+            max_per_image: 2,
+        };
+        let images = [
+            Tensor::<B64, 4>::ones([2, 4, 6, 5], &device),
+            Tensor::<B64, 4>::ones([2, 4, 3, 3], &device),
+        ];
+        let feats = Tensor::<B64, 2>::ones([2, 8], &device);
+        crate::profile::enable(true);
+        dca.forward(feats.clone(), feats.zeros_like(), &hits, &images, &[4, 8])
+            .unwrap();
+        let total = crate::profile::take_unmarked_macs();
+        let mut ops = crate::profile::take_ops();
+        ops.sort();
+        crate::profile::enable(false);
+        let offsets = 2 * 8 * (2 * 2 * 3 * 2); // queries x D x (M L N_s 2)
+        let weights = 2 * 8 * (2 * 2 * 3); // queries x D x (M L N_s)
+        let values = (2 * 6 * 5 + 2 * 3 * 3) * 4 * 8; // every feature pixel x C x D
+        let sampling = 3 * 2 * 3 * 8 * 4; // hits x L x N_s x D x 4 corners
+        let out_proj = 2 * 8 * 8;
+        let ffn = 2 * 8 * 16 + 2 * 16 * 8;
+        let linear = offsets + weights + values + out_proj + ffn;
+        assert_eq!(dca.sampling_macs(3), sampling as u64);
+        assert_eq!(total, (linear + sampling) as u64);
+        assert_eq!(
+            ops,
+            vec![("dca_sampling", sampling as u64), ("linear", linear as u64)]
+        );
+        // Off: nothing is counted.
+        dca.forward(feats.clone(), feats.zeros_like(), &hits, &images, &[4, 8])
+            .unwrap();
+        assert_eq!(crate::profile::take_unmarked_macs(), 0);
+    }
 
     /// Initial offsets: Deformable DETR's ring (head `m` along angle `2πm/M`, normalised so the larger
     /// component is 1, point `j` at `j + 1`), times `offset_init_scale`; a negative scale is refused.

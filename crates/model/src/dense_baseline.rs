@@ -167,7 +167,7 @@ impl<B: SparseConvBackend> DenseBaseline<B> {
         }
         crate::profile::mark("dense_encoder", t.feats());
         let coords = t.coords().to_vec();
-        let logits = self.head.forward(t.into_feats());
+        let logits = crate::profile::linear(&self.head, t.into_feats());
         crate::profile::mark("head", &logits);
         let hit = lss_out.frustum.hit_voxels().0.len();
         let out = ModelOutput {

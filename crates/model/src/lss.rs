@@ -222,9 +222,9 @@ impl<B: Backend> Lss<B> {
         let (xd, xc) = match &self.gates {
             Some(g) => {
                 let cam = camera_params::<B>(batch, &device)?;
-                let hidden = relu(g.fc1.forward(cam));
-                let gd = sigmoid(g.fc_depth.forward(hidden.clone()));
-                let gc = sigmoid(g.fc_context.forward(hidden));
+                let hidden = relu(crate::profile::linear(&g.fc1, cam));
+                let gd = sigmoid(crate::profile::linear(&g.fc_depth, hidden.clone()));
+                let gc = sigmoid(crate::profile::linear(&g.fc_context, hidden));
                 let m = gd.dims()[1];
                 (
                     x.clone() * gd.reshape([bv, m, 1, 1]),
@@ -490,6 +490,8 @@ pub fn splat<B: Backend>(
         return Ok(out);
     }
     let n = target.len();
+    // One multiply-add per (point, channel): the depth-weighted context added into its voxel.
+    crate::profile::add_matmul("lss_splat", 1, n, 1, c);
     let idx = |v: Vec<i64>| Tensor::<B, 1, Int>::from_data(TensorData::new(v, [n]), &device);
     let prob = depth_prob
         .reshape([bv * d * hw])

@@ -189,16 +189,18 @@ impl<B: Backend> Attention<B> {
         let h = self.heads;
         let dh = c / h;
         let split = |x: Tensor<B, 2>, n: usize| x.reshape([n, h, dh]).swap_dims(0, 1);
-        let q = split(self.q.forward(query), nq);
-        let k = split(self.k.forward(key), nk);
-        let v = split(self.v.forward(value), nk);
+        let q = split(crate::profile::linear(&self.q, query), nq);
+        let k = split(crate::profile::linear(&self.k, key), nk);
+        let v = split(crate::profile::linear(&self.v, value), nk);
+        // Scores q·kᵀ and the weighted sum of values, per head.
+        crate::profile::add_matmul("attention", 2 * h, nq, dh, nk);
         let mut scores = q.matmul(k.swap_dims(1, 2)).div_scalar((dh as f64).sqrt());
         if let Some(b) = bias {
             scores = scores + b.unsqueeze_dim(0);
         }
         let attn = softmax(scores, 2);
         let out = attn.matmul(v).swap_dims(0, 1).reshape([nq, c]);
-        self.o.forward(out)
+        crate::profile::linear(&self.o, out)
     }
 }
 
@@ -238,7 +240,10 @@ impl<B: Backend> DecoderLayer<B> {
         let qp = q.clone() + query_pos;
         let sa = self.self_attn.forward(qp.clone(), qp, q.clone(), None);
         let q = self.norm2.forward(q + sa);
-        let ff = self.ffn2.forward(relu(self.ffn1.forward(q.clone())));
+        let ff = crate::profile::linear(
+            &self.ffn2,
+            relu(crate::profile::linear(&self.ffn1, q.clone())),
+        );
         self.norm3.forward(q + ff)
     }
 }
@@ -479,15 +484,17 @@ impl<B: Backend> MaskHead<B> {
     /// Class logits and mask logits of the current queries.
     fn predict(&self, queries: Tensor<B, 2>, kept_feats: &Tensor<B, 2>) -> QueryPrediction<B> {
         let decoded = self.decoder_norm.forward(queries);
-        let class_logits = self.class_embed.forward(decoded.clone());
+        let class_logits = crate::profile::linear(&self.class_embed, decoded.clone());
         let n = self.mask_embed.len();
         let mut e = decoded;
         for (i, l) in self.mask_embed.iter().enumerate() {
-            e = l.forward(e);
+            e = crate::profile::linear(&l, e);
             if i + 1 < n {
                 e = relu(e);
             }
         }
+        let [nq, c] = e.dims();
+        crate::profile::add_matmul("mask", 1, nq, c, kept_feats.dims()[0] + 1);
         let mask_kept = e.clone().matmul(kept_feats.clone().transpose());
         let mask_empty = e.matmul(self.empty_token.val().transpose());
         QueryPrediction {
@@ -499,8 +506,8 @@ impl<B: Backend> MaskHead<B> {
 
     /// Coarse semantic logits on the mask features (detached, official `occ_pred_conv`).
     pub fn coarse_logits(&self, mask_features: &Tensor<B, 2>) -> Tensor<B, 2> {
-        let x = self.coarse_fc1.forward(mask_features.clone().detach());
-        self.coarse_fc2.forward(relu(self.coarse_norm.forward(x)))
+        let x = crate::profile::linear(&self.coarse_fc1, mask_features.clone().detach());
+        crate::profile::linear(&self.coarse_fc2, relu(self.coarse_norm.forward(x)))
     }
 
     /// Runs the head.
@@ -650,6 +657,8 @@ impl<B: Backend> MaskHead<B> {
             let nc = self.num_classes;
             let nq = last.class_logits.dims()[0];
             let probs = softmax(last.class_logits.clone(), 1).slice([0..nq, 0..nc]);
+            let nk = last.mask_kept.dims()[1];
+            crate::profile::add_matmul("mask", 1, nk, nq, nc);
             let scores = sigmoid(last.mask_kept.clone()).transpose().matmul(probs);
             log_scores.push(scores.clamp_min(1e-12).log());
             kept_coords.extend(kept.iter().map(|&r| coords0[r]));

@@ -8,13 +8,35 @@
 //! (reading back one scalar, so on a GPU every queued kernel before it has run) and records the
 //! wall time since the previous mark. Disabled (the default), it costs nothing and does not
 //! synchronise.
+//!
+//! The same switch counts multiply-adds (MACs): layers call [`add_macs`] (or the helpers [`linear`],
+//! [`add_conv2d`], [`add_matmul`]) with the work of what they just ran, computed from shapes and
+//! sizes on the host, and the sparse convolutions count `pairs * c_in * c_out` in occ-sparse's own
+//! counter ([`occ_sparse::flops`]), drained here. Each [`mark`] attributes the MACs counted since the
+//! previous mark to its stage, as it does the time. Disabled, [`add_macs`] reads one thread-local
+//! flag and returns (no allocation, no synchronisation, no shape arithmetic in [`linear`]).
 
+use burn::nn::Linear;
 use burn::prelude::*;
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::time::Instant;
 
-/// Start of the current stage and the `(stage, ms)` records.
-type Records = Option<(Instant, Vec<(String, f64)>)>;
+/// One stage of a profiled pass: its name, wall milliseconds and multiply-adds.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StageRecord {
+    /// Stage name (as given to [`mark`]).
+    pub name: String,
+    /// Wall time since the previous mark (ms).
+    pub ms: f64,
+    /// Multiply-adds counted since the previous mark.
+    pub macs: u64,
+}
+
+/// Start of the current stage and the stage records.
+type Records = Option<(Instant, Vec<StageRecord>)>;
+
+/// Op name under which the sparse convolutions' MACs (counted by occ-sparse) are reported.
+pub const SPARSE_CONV_OP: &str = "sparse_conv";
 
 /// Whether `SPARSEOCC_TRACE` is set (read once).
 fn trace() -> bool {
@@ -25,11 +47,84 @@ fn trace() -> bool {
 thread_local! {
     static TRACE_CLOCK: std::cell::Cell<Option<Instant>> = const { std::cell::Cell::new(None) };
     static PROFILE: RefCell<Records> = const { RefCell::new(None) };
+    static MACS_ON: Cell<bool> = const { Cell::new(false) };
+    /// MACs counted since the last mark (model side; the sparse convs' are in occ-sparse's counter).
+    static STAGE_MACS: Cell<u64> = const { Cell::new(0) };
+    /// MACs per op since [`enable`] / [`take_ops`].
+    static OPS: RefCell<Vec<(&'static str, u64)>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Turns stage timing on (clearing earlier records) or off for this thread.
+/// Turns stage timing and MAC counting on (clearing earlier records and counts) or off for this
+/// thread.
 pub fn enable(on: bool) {
     PROFILE.with(|p| *p.borrow_mut() = on.then(|| (Instant::now(), Vec::new())));
+    MACS_ON.with(|c| c.set(on));
+    STAGE_MACS.with(|c| c.set(0));
+    OPS.with(|o| o.borrow_mut().clear());
+    occ_sparse::flops::enable(on);
+}
+
+/// Whether MAC counting is on for this thread.
+#[inline]
+pub fn counting() -> bool {
+    MACS_ON.with(Cell::get)
+}
+
+/// Adds `macs` multiply-adds of kind `op` to the current stage (when profiling is on).
+#[inline]
+pub fn add_macs(op: &'static str, macs: u64) {
+    if counting() {
+        record(op, macs);
+    }
+}
+
+fn record(op: &'static str, macs: u64) {
+    STAGE_MACS.with(|c| c.set(c.get().saturating_add(macs)));
+    OPS.with(|o| {
+        let mut o = o.borrow_mut();
+        match o.iter_mut().find(|(k, _)| *k == op) {
+            Some(e) => e.1 = e.1.saturating_add(macs),
+            None => o.push((op, macs)),
+        }
+    });
+}
+
+/// Moves the sparse convolutions' count (occ-sparse's counter) into this one.
+fn drain_sparse() {
+    let n = occ_sparse::flops::take();
+    if n > 0 {
+        record(SPARSE_CONV_OP, n);
+    }
+}
+
+/// MACs of a matrix product `[batch, m, k] x [batch, k, n]`, counted as op `op`.
+#[inline]
+pub fn add_matmul(op: &'static str, batch: usize, m: usize, k: usize, n: usize) {
+    if counting() {
+        record(op, (batch * m * k * n) as u64);
+    }
+}
+
+/// MACs of a 2D convolution with weight `[C_out, C_in / groups, kh, kw]` that produced an output of
+/// `out_elements` values (`N * C_out * H_out * W_out`): each output value takes
+/// `C_in / groups * kh * kw` multiply-adds.
+#[inline]
+pub fn add_conv2d(weight_dims: [usize; 4], out_elements: usize) {
+    if counting() {
+        let [_, cin_g, kh, kw] = weight_dims;
+        record("conv2d", (out_elements * cin_g * kh * kw) as u64);
+    }
+}
+
+/// `lin.forward(x)`, counting its `rows * d_in * d_out` multiply-adds (the bias is not a MAC).
+#[inline]
+pub fn linear<B: Backend, const D: usize>(lin: &Linear<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+    if counting() {
+        let [d_in, d_out] = lin.weight.dims();
+        let rows = x.shape().num_elements() / d_in.max(1);
+        record("linear", (rows * d_in * d_out) as u64);
+    }
+    lin.forward(x)
 }
 
 /// Restarts the clock (call at the start of a forward pass).
@@ -60,22 +155,45 @@ pub fn mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
         let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
         eprintln!("[trace] {name}: {ms:.1} ms, {:?}", done.dims());
     }
+    if !on {
+        return;
+    }
+    drain_sparse();
+    let macs = STAGE_MACS.with(|c| c.replace(0));
     PROFILE.with(|p| {
         if let Some((t, v)) = p.borrow_mut().as_mut() {
-            v.push((name.to_string(), t.elapsed().as_secs_f64() * 1e3));
+            v.push(StageRecord {
+                name: name.to_string(),
+                ms: t.elapsed().as_secs_f64() * 1e3,
+                macs,
+            });
             *t = Instant::now();
         }
     });
 }
 
-/// The recorded `(stage, ms)` pairs since [`enable`], cleared.
-pub fn take() -> Vec<(String, f64)> {
+/// The recorded stages since [`enable`], cleared.
+pub fn take() -> Vec<StageRecord> {
     PROFILE.with(|p| {
         p.borrow_mut()
             .as_mut()
             .map(|(_, v)| std::mem::take(v))
             .unwrap_or_default()
     })
+}
+
+/// The MACs counted since the last [`mark`] (work outside any marked stage, or a pass without
+/// marks), cleared.
+pub fn take_unmarked_macs() -> u64 {
+    drain_sparse();
+    STAGE_MACS.with(|c| c.replace(0))
+}
+
+/// The MACs per op (`"linear"`, `"conv2d"`, `"sparse_conv"`, `"dca_sampling"`, ...) since
+/// [`enable`] or the last call, cleared.
+pub fn take_ops() -> Vec<(&'static str, u64)> {
+    drain_sparse();
+    OPS.with(|o| std::mem::take(&mut *o.borrow_mut()))
 }
 
 /// A finer mark for `SPARSEOCC_TRACE` only (a layer inside a stage): synchronises and prints when
@@ -92,4 +210,97 @@ pub fn trace_mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
     let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
     let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
     eprintln!("[trace]   {name}: {ms:.1} ms, {:?}", done.dims());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::nn::conv::Conv2dConfig;
+    use burn::nn::{LinearConfig, PaddingConfig2d};
+
+    type B = burn::backend::NdArray<f32>;
+
+    #[test]
+    fn linear_counts_rows_times_in_times_out() {
+        let device = Default::default();
+        let lin = LinearConfig::new(6, 5).init::<B>(&device);
+        enable(false);
+        linear(&lin, Tensor::<B, 2>::ones([7, 6], &device));
+        assert_eq!(take_unmarked_macs(), 0, "nothing is counted when off");
+        enable(true);
+        // A rank-3 input: 2 x 3 = 6 rows of 6 inputs.
+        let y = linear(&lin, Tensor::<B, 3>::ones([2, 3, 6], &device));
+        assert_eq!(y.dims(), [2, 3, 5]);
+        assert_eq!(take_unmarked_macs(), 6 * 6 * 5);
+        enable(false);
+    }
+
+    #[test]
+    fn conv2d_counts_output_values_times_kernel_and_input_channels() {
+        let device = Default::default();
+        // 3 -> 4 channels, 3x3, stride 2, padding 1, on 1 x 3 x 9 x 7: output 4 x 5 x 4.
+        let conv = Conv2dConfig::new([3, 4], [3, 3])
+            .with_stride([2, 2])
+            .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+            .init::<B>(&device);
+        enable(true);
+        let y = crate::conv2d_host::conv_bn(
+            &conv,
+            None,
+            Tensor::<B, 4>::ones([1, 3, 9, 7], &device),
+            true,
+        );
+        assert_eq!(y.dims(), [1, 4, 5, 4]);
+        assert_eq!(take_unmarked_macs(), (4 * 5 * 4) * 3 * 3 * 3);
+        // Grouped: 4 -> 4 channels in 2 groups, 1x1, on 2 x 4 x 2 x 3: each output value takes 2 MACs.
+        let grouped = Conv2dConfig::new([4, 4], [1, 1])
+            .with_groups(2)
+            .init::<B>(&device);
+        crate::conv2d_host::conv_bn(
+            &grouped,
+            None,
+            Tensor::<B, 4>::ones([2, 4, 2, 3], &device),
+            false,
+        );
+        assert_eq!(take_unmarked_macs(), (2 * 4 * 2 * 3) * 2);
+        enable(false);
+    }
+
+    #[test]
+    fn marks_attribute_macs_and_ops_to_stages() {
+        let device = Default::default();
+        let lin = LinearConfig::new(4, 2).init::<B>(&device);
+        enable(true);
+        let y = linear(&lin, Tensor::<B, 2>::ones([3, 4], &device));
+        add_matmul("attention", 2, 3, 4, 5);
+        mark("first", &y);
+        add_macs("dca_sampling", 11);
+        mark("second", &y);
+        add_conv2d([8, 2, 3, 3], 10);
+        let stages = take();
+        assert_eq!(stages.len(), 2);
+        assert_eq!(
+            (stages[0].name.as_str(), stages[0].macs),
+            ("first", 3 * 4 * 2 + 2 * 3 * 4 * 5)
+        );
+        assert_eq!((stages[1].name.as_str(), stages[1].macs), ("second", 11));
+        assert!(stages.iter().all(|s| s.ms >= 0.0));
+        assert_eq!(take_unmarked_macs(), 10 * 2 * 3 * 3);
+        let mut ops = take_ops();
+        ops.sort();
+        assert_eq!(
+            ops,
+            vec![
+                ("attention", 120),
+                ("conv2d", 180),
+                ("dca_sampling", 11),
+                ("linear", 24)
+            ]
+        );
+        enable(false);
+        add_macs("linear", 5);
+        mark("off", &y);
+        assert!(take().is_empty());
+        assert_eq!(take_unmarked_macs(), 0);
+    }
 }

@@ -117,7 +117,7 @@ impl<B: Backend> SparsePyramid<B> {
                     "pyramid.rs: level {l} has no active site"
                 )));
             }
-            let f = self.norms[l].forward(self.proj[l].forward(x.feats().clone()));
+            let f = self.norms[l].forward(crate::profile::linear(&self.proj[l], x.feats().clone()));
             projected.push(x.with_feats(f)?);
         }
         let w = self.scale_weights.val();
@@ -133,8 +133,10 @@ impl<B: Backend> SparsePyramid<B> {
             }
             fused.push(target.with_feats(acc)?);
         }
-        let mask_features =
-            fused[0].with_feats(self.mask_proj.forward(relu(fused[0].feats().clone())))?;
+        let mask_features = fused[0].with_feats(crate::profile::linear(
+            &self.mask_proj,
+            relu(fused[0].feats().clone()),
+        ))?;
         Ok(PyramidOutput {
             levels: fused,
             mask_features,

@@ -118,7 +118,7 @@ pub struct ScfMlp<B: Backend> {
 impl<B: Backend> ScfMlp<B> {
     /// `[N, D]` → `[N, out]`.
     pub fn forward(&self, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        self.fc2.forward(relu(self.fc1.forward(x)))
+        crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
     }
 }
 

@@ -445,7 +445,12 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
                 stats.push(("final_full_res".to_string(), children.len()));
                 (children, logits, cfg.full_dims, 1)
             }
-            None => (coords, self.head.forward(x.into_feats()), out_dims, 2),
+            None => (
+                coords,
+                crate::profile::linear(&self.head, x.into_feats()),
+                out_dims,
+                2,
+            ),
         };
         crate::profile::mark("head", &logits);
         Ok(PPOutput {

@@ -99,7 +99,10 @@ impl<B: Backend> SubVoxelHead<B> {
         let rows: Vec<u32> = (0..n as u32).flat_map(|r| [r; 8]).collect();
         let x = feats.select(0, index_tensor::<B>(&rows, &device))
             + self.child_embed.val().repeat_dim(0, n);
-        let logits = classifier.forward(relu(self.hidden.forward(relu(x))));
+        let logits = crate::profile::linear(
+            classifier,
+            relu(crate::profile::linear(&self.hidden, relu(x))),
+        );
         Ok((children, logits))
     }
 }

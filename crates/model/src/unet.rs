@@ -159,7 +159,7 @@ impl<B: SparseConvBackend> SparseUNet<B> {
             let device = x.device();
             return Ok(x.with_feats(Tensor::zeros([0, self.out_channels()], &device))?);
         }
-        let mut x = x.map_feats(|f| self.input.forward(f))?;
+        let mut x = x.map_feats(|f| crate::profile::linear(&self.input, f))?;
         let levels = self.blocks.len();
         let mut skips = Vec::with_capacity(levels);
         for (i, block) in self.blocks.iter().enumerate() {

@@ -173,6 +173,7 @@ pub fn sparse_conv3d<B: SparseConvBackend>(
         ConvKind::Inverse => inverse_of(&set, geometry)?,
     };
     let kv = kx * ky * kz;
+    crate::flops::add((map.num_pairs() * cin * cout) as u64);
     let w = weight.reshape([cout, kv, cin]);
     let mut feats = sparse_conv(input.into_feats(), w, map, false);
     if let Some(b) = bias {

@@ -13,6 +13,7 @@ pub mod backend;
 pub mod conv;
 pub mod coords;
 pub mod error;
+pub mod flops;
 mod fused;
 pub mod host;
 pub mod kernel_map;
