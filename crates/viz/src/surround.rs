@@ -639,14 +639,8 @@ mod tests {
 
     #[test]
     fn display_order_and_columns() {
-        let bevdet = [
-            "CAM_FRONT",
-            "CAM_FRONT_RIGHT",
-            "CAM_FRONT_LEFT",
-            "CAM_BACK",
-            "CAM_BACK_LEFT",
-            "CAM_BACK_RIGHT",
-        ];
+        // The readers' (BEVDet's) camera order.
+        let bevdet = occ_data::formats::nuscenes_occupancy::CAMERA_CHANNELS;
         assert_eq!(display_order(&bevdet), vec![2, 0, 1, 4, 3, 5]);
         assert_eq!(display_order(&["B", "A", "C"]), vec![0, 1, 2]);
         assert_eq!(display_order(&bevdet[..5]), vec![0, 1, 2, 3, 4]);
