@@ -488,7 +488,7 @@ impl<B: Backend> MaskHead<B> {
         let n = self.mask_embed.len();
         let mut e = decoded;
         for (i, l) in self.mask_embed.iter().enumerate() {
-            e = crate::profile::linear(&l, e);
+            e = crate::profile::linear(l, e);
             if i + 1 < n {
                 e = relu(e);
             }
