@@ -701,13 +701,17 @@ mod tests {
     /// (3 hits); level maps 6x5 and 3x3 on 2 images.
     #[test]
     fn block_macs_match_a_hand_count() {
+        // f32, as the other lib tests of this binary: burn 0.21 keeps one default float dtype per
+        // device, set by the first backend that uses it, so an f64 NdArray after f32 ones (the
+        // backbone tests) gets f32 tensors, which the host loop refuses.
+        type B32 = burn::backend::NdArray<f32>;
         let device = Default::default();
         let dca = DcaConfig::new(8, 4)
             .with_num_heads(2)
             .with_num_levels(2)
             .with_num_points(3)
             .with_ffn_ratio(2)
-            .init::<B64>(&device);
+            .init::<B32>(&device);
         let hits = ViewHits {
             num_queries: 2,
             num_images: 2,
@@ -720,10 +724,10 @@ mod tests {
             max_per_image: 2,
         };
         let images = [
-            Tensor::<B64, 4>::ones([2, 4, 6, 5], &device),
-            Tensor::<B64, 4>::ones([2, 4, 3, 3], &device),
+            Tensor::<B32, 4>::ones([2, 4, 6, 5], &device),
+            Tensor::<B32, 4>::ones([2, 4, 3, 3], &device),
         ];
-        let feats = Tensor::<B64, 2>::ones([2, 8], &device);
+        let feats = Tensor::<B32, 2>::ones([2, 8], &device);
         crate::profile::enable(true);
         dca.forward(feats.clone(), feats.zeros_like(), &hits, &images, &[4, 8])
             .unwrap();
