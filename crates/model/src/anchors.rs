@@ -36,8 +36,6 @@ use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCro
 use crate::depth_gate::DepthMap;
 use crate::depth_oracle::DepthOracle;
 
-/// The gate of every hit: the learned depth map's ([`crate::depth_gate`]), the diagnostic oracle's
-/// ([`crate::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
 /// Height (metres, LiDAR frame) of the column bases of option `dca_column_base`: the centre of the
 /// lowest layer of the full-resolution grid `full` (the synthetic ground; 0.37 m under SemanticKITTI's
 /// ground at -1.73 m).
@@ -45,6 +43,8 @@ pub(crate) fn column_floor_z_m(full: &occ_geometry::VoxelGrid) -> f64 {
     full.origin_m[2] + 0.5 * full.voxel_size_m
 }
 
+/// The gate of every hit: the learned depth map's ([`crate::depth_gate`]), the diagnostic oracle's
+/// ([`crate::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
 pub(crate) fn combined_gate<B: Backend>(
     depth: Option<&DepthMap<B>>,
     oracle: Option<&DepthOracle>,
