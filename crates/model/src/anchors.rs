@@ -35,6 +35,7 @@ use crate::dca::ViewHits;
 use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCrossAttention};
 use crate::depth_gate::DepthMap;
 use crate::depth_oracle::DepthOracle;
+use crate::scan_oracle::ScanOracle;
 
 /// Height (metres, LiDAR frame) of the column bases of option `dca_column_base`: the centre of the
 /// lowest layer of the full-resolution grid `full` (the synthetic ground; 0.37 m under SemanticKITTI's
@@ -247,6 +248,10 @@ pub struct AnchorGeneratorConfig {
     /// each candidate's column base (see [`crate::dca::project_column_bases`]).
     #[config(default = false)]
     pub column_base: bool,
+    /// DIAGNOSTIC ([`crate::scan_oracle`]): add a learned embedding of the candidates' scan evidence
+    /// to their queries.
+    #[config(default = false)]
+    pub scan_oracle: bool,
 }
 
 impl AnchorGeneratorConfig {
@@ -325,6 +330,9 @@ impl AnchorGeneratorConfig {
                     base_dca: self.column_base.then(|| self.dca.init(device)),
                 })
                 .collect(),
+            scan_embed: self
+                .scan_oracle
+                .then(|| LinearConfig::new(2, d).init(device)),
             mode: self.mode,
             keep_ratios: self.keep_ratios.clone(),
             full_dims: self.full_dims,
@@ -344,6 +352,8 @@ pub struct AnchorGenerator<B: Backend> {
     pub pos: PositionEncoding<B>,
     /// DCA + score per level (3 coarse-to-fine, 1 uniform).
     pub stages: Vec<AnchorStage<B>>,
+    /// Embedding `2 → D` of the scan oracle's evidence (present with `scan_oracle`, a diagnostic).
+    pub scan_embed: Option<Linear<B>>,
     mode: AnchorMode,
     keep_ratios: Vec<f64>,
     full_dims: [usize; 3],
@@ -384,9 +394,16 @@ impl<B: Backend> AnchorGenerator<B> {
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,
         oracle: Option<&DepthOracle>,
+        scan: Option<&ScanOracle>,
     ) -> Result<(Tensor<B, 2>, LevelPrediction<B>), ModelError> {
         let device = feats.device();
         let dims = self.level_dims(r);
+        let feats = match (scan, &self.scan_embed) {
+            (Some(scan), Some(embed)) => {
+                feats + embed.forward(scan.features(&coords, LEVEL_FACTORS[r], &device)?)
+            }
+            _ => feats,
+        };
         let grid = batch.grid.downsampled(LEVEL_FACTORS[r]);
         let pos = self.pos.encode(&coords, dims, &device);
         let hits = project_queries(&coords, &grid, &batch.cameras, batch.image_hw())?;
@@ -433,6 +450,7 @@ impl<B: Backend> AnchorGenerator<B> {
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,
         oracle: Option<&DepthOracle>,
+        scan: Option<&ScanOracle>,
     ) -> Result<AnchorOutput<B>, ModelError> {
         if batch.grid.dims != self.full_dims {
             return Err(ModelError::Input(format!(
@@ -467,6 +485,7 @@ impl<B: Backend> AnchorGenerator<B> {
                         batch,
                         depth,
                         oracle,
+                        scan,
                     )?;
                     crate::profile::trace_mark(&format!("anchors level {r}"), &x);
                     let scores = occupancy_score(&pred.logits);
@@ -551,7 +570,7 @@ impl<B: Backend> AnchorGenerator<B> {
                 };
                 let n = coords.len();
                 let (x, mut pred) = self.run_stage(
-                    stage, 2, coords, feats, images, strides, batch, depth, oracle,
+                    stage, 2, coords, feats, images, strides, batch, depth, oracle, scan,
                 )?;
                 pred.kept = (0..n).collect();
                 let anchors = SparseTensor::new(pred.coords.clone(), x, dims2, bsz)?;

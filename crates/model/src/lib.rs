@@ -30,6 +30,7 @@ pub mod propagation;
 pub mod propagator;
 pub mod pyramid;
 pub mod sample;
+pub mod scan_oracle;
 pub mod scf_head;
 pub mod sem2d;
 pub mod sparseocc;

@@ -120,13 +120,18 @@ impl OccNetConfig {
     /// semantic head, the depth-oracle diagnostic).
     pub fn needs_points_for_training(&self) -> bool {
         let pp = self.pp_config();
-        self.kind != ModelKind::SparseOccPP || pp.depth_gate || pp.sem2d_aux || pp.depth_oracle
+        self.kind != ModelKind::SparseOccPP
+            || pp.depth_gate
+            || pp.sem2d_aux
+            || pp.depth_oracle
+            || pp.scan_oracle
     }
 
     /// Whether inference reads the LiDAR scan: only the depth-oracle diagnostic of SparseOcc++ does
     /// (it is not a camera-only model).
     pub fn needs_points_at_test(&self) -> bool {
-        self.kind == ModelKind::SparseOccPP && self.pp_config().depth_oracle
+        self.kind == ModelKind::SparseOccPP
+            && (self.pp_config().depth_oracle || self.pp_config().scan_oracle)
     }
 
     /// The SparseOcc++ configuration with the shared sizes filled in.

@@ -23,6 +23,7 @@ use crate::error::ModelError;
 use crate::loss::{ce::cross_entropy, occ_loss};
 use crate::output::ModelOutput;
 use crate::propagation::propagate_anchors;
+use crate::scan_oracle::ScanOracle;
 use crate::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
@@ -144,6 +145,15 @@ pub struct SparseOccPPConfig {
     /// pillar reference points). About twice the DCA cost.
     #[config(default = false)]
     pub dca_column_base: bool,
+    /// DIAGNOSTIC, not a model option (needs the LiDAR scan at test time): tell every anchor
+    /// candidate and every final voxel which share of it holds a return of the frame's scan and
+    /// which share a ray crossed, through a learned embedding added to its query
+    /// ([`crate::scan_oracle`]): what perfect depth would give the 3D part.
+    #[config(default = false)]
+    pub scan_oracle: bool,
+    /// With `scan_oracle`: use the whole 360° scan, not only the returns the cameras see.
+    #[config(default = false)]
+    pub scan_oracle_full_scan: bool,
 }
 
 impl SparseOccPPConfig {
@@ -162,6 +172,7 @@ impl SparseOccPPConfig {
             .with_mode(self.anchor_mode)
             .with_keep_ratios(self.keep_ratios.clone())
             .with_column_base(self.dca_column_base)
+            .with_scan_oracle(self.scan_oracle)
     }
 
     /// The SCF heads' configuration.
@@ -240,6 +251,9 @@ impl SparseOccPPConfig {
                 .depth_gate
                 .then(|| self.depth_gate_config().init(device)),
             sem2d: self.sem2d_aux.then(|| self.sem2d_config().init(device)),
+            scan_embed: self
+                .scan_oracle
+                .then(|| LinearConfig::new(2, self.embed_dim).init(device)),
             config: self.clone(),
         }
     }
@@ -275,6 +289,9 @@ pub struct SparseOccPP<B: Backend> {
     pub depth: Option<DepthGate<B>>,
     /// Image semantic head (present with `sem2d_aux`).
     pub sem2d: Option<Sem2dHead<B>>,
+    /// Embedding `2 → D` of the scan oracle's evidence for the final stage (present with
+    /// `scan_oracle`, a diagnostic).
+    pub scan_embed: Option<Linear<B>>,
     config: SparseOccPPConfig,
 }
 
@@ -372,9 +389,19 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
         } else {
             None
         };
-        let gen = self
-            .anchors
-            .forward(feats, strides, batch, depth.as_ref(), oracle.as_ref())?;
+        let scan = if cfg.scan_oracle {
+            ScanOracle::from_batch(batch, cfg.scan_oracle_full_scan)?
+        } else {
+            None
+        };
+        let gen = self.anchors.forward(
+            feats,
+            strides,
+            batch,
+            depth.as_ref(),
+            oracle.as_ref(),
+            scan.as_ref(),
+        )?;
         crate::profile::mark("anchors", gen.anchors.feats());
         let mut stats = gen.stats;
         let anchors = gen.anchors;
@@ -413,14 +440,16 @@ impl<B: SparseConvBackend> SparseOccPP<B> {
             grid.voxel_size_m,
             &device,
         )?;
-        let x = self.dca.forward_gated(
-            completed.feats().clone(),
-            pos.clone(),
-            &hits,
-            feats,
-            strides,
-            gate,
-        )?;
+        let query = match (&scan, &self.scan_embed) {
+            (Some(scan), Some(embed)) => {
+                completed.feats().clone()
+                    + embed.forward(scan.features(completed.coords(), 2, &device)?)
+            }
+            _ => completed.feats().clone(),
+        };
+        let x = self
+            .dca
+            .forward_gated(query, pos.clone(), &hits, feats, strides, gate)?;
         let x = match &self.base_dca {
             Some(base) => {
                 let hits = project_column_bases(

@@ -135,6 +135,38 @@ fn column_base_dca_is_built_at_every_dca_and_trained() {
     );
 }
 
+/// The scan oracle (a diagnostic) adds a learned embedding of each voxel's scan evidence to its
+/// query at every anchor level and at the final stage: with returns in the batch the outputs change
+/// and the embeddings get gradients; without points the model runs as without the option.
+#[test]
+fn scan_oracle_embeds_the_scan_evidence_and_trains() {
+    let cfg = tiny_config().with_scan_oracle(true);
+    let device = Default::default();
+    let model: SparseOccPP<AD> = cfg.try_init(&device).expect("valid config");
+    assert!(model.scan_embed.is_some() && model.anchors.scan_embed.is_some());
+    let mut b = batch::<AD>(1, 31, &device);
+    let feats = features::<AD>(1, 131, &device);
+    let without = model.forward(&feats, &STRIDES, &b).expect("forward");
+    // A wall of returns across the grid at x = 4.1 m, seen by the camera at x = -1.
+    let points: Vec<[f32; 3]> = (0..32)
+        .flat_map(|j| (0..8).map(move |k| [4.1, -3.1 + 0.2 * j as f32, -0.7 + 0.2 * k as f32]))
+        .collect();
+    b.points = Some(vec![points]);
+    let with = model.forward(&feats, &STRIDES, &b).expect("forward");
+    let (l0, l0_without) = (
+        to_f64(&with.anchor_levels[0].logits),
+        to_f64(&without.anchor_levels[0].logits),
+    );
+    assert_eq!(l0.len(), l0_without.len());
+    assert!(l0
+        .iter()
+        .zip(&l0_without)
+        .any(|(a, b)| (a - b).abs() > 1e-6));
+    let grads = sum_all(&with).backward();
+    let n = assert_all_grads(&model, &grads);
+    assert!(n > 50, "only {n} parameters visited");
+}
+
 #[test]
 fn ablations_run_and_train() {
     let variants = [
