@@ -20,6 +20,12 @@ mod util;
 
 use clap::{Parser, Subcommand};
 
+/// mimalloc instead of glibc malloc: the models allocate and free multi-megabyte tensors every
+/// layer, which glibc serves with fresh `mmap`s (page faults and zeroing each time) above its mmap
+/// threshold; mimalloc keeps and reuses those pages (BENCHMARKS.md, "allocator").
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser, Debug)]
 #[command(
     name = "sparseocc",
