@@ -16,9 +16,10 @@
 //! machine's sgemm rate, measured in the same run by [`sgemm_gflops`].
 
 use crate::backend::{self, Infer};
+use crate::util::ModelArg;
 use anyhow::{bail, Context, Result};
 use occ_data::synthetic::{self, Preset, SynthConfig};
-use occ_model::{ModelKind, OccNet};
+use occ_model::OccNet;
 use occ_train::dataset::{collate, Dataset, DatasetFormat};
 use occ_train::RunConfig;
 use occ_viz::plot::{line_plot, PlotSpec, Series};
@@ -38,7 +39,7 @@ pub struct BenchArgs {
         value_delimiter = ',',
         default_value = "sparseocc++,sparseocc,dense"
     )]
-    pub models: Vec<String>,
+    pub models: Vec<ModelArg>,
     /// Timed frames per model (after the warm-up).
     #[arg(long, default_value_t = 5)]
     pub frames: usize,
@@ -203,7 +204,7 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
     let Some(name) = args.models.first() else {
         bail!("--single needs one model");
     };
-    cfg.model.kind = ModelKind::parse(name)?;
+    cfg.model.kind = (*name).into();
     let data = args.data.as_ref().context("--single needs --data")?;
     let base_rss = status_kib("VmRSS:").unwrap_or(0.0) / 1024.0;
     let seq = match cfg.data.format {
@@ -379,8 +380,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         eprintln!("bench: sgemm rate ({SGEMM_N}x{SGEMM_N} f32 matmuls)");
         let sgemm = sgemm_gflops(SGEMM_N, SGEMM_REPS);
         let mut results = Vec::new();
-        for m in &args.models {
-            ModelKind::parse(m)?;
+        for m in args.models.iter().map(|m| m.name()) {
             eprintln!(
                 "bench: {m} ({} warm-up + {} frames)",
                 args.warmup, args.frames
@@ -424,7 +424,7 @@ fn scan(args: &BenchArgs, data: &Path, prefix: &Path) -> Result<()> {
     let colors = [[220, 60, 40], [40, 110, 220], [90, 90, 90]];
     let mut all = Vec::new();
     let mut series = Vec::new();
-    for (i, m) in args.models.iter().enumerate() {
+    for (i, m) in args.models.iter().map(|m| m.name()).enumerate() {
         let mut pts = Vec::new();
         let base: [usize; 3] = RunConfig::load(&args.config)?.model.full_dims;
         for div in [4, 2, 1] {
@@ -452,7 +452,7 @@ fn scan(args: &BenchArgs, data: &Path, prefix: &Path) -> Result<()> {
         }
         let color = colors[i % colors.len()];
         series.push(Series {
-            name: m.clone(),
+            name: m.to_string(),
             color,
             points: pts,
         });

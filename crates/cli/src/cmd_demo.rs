@@ -11,6 +11,7 @@ use crate::cmd_train::run_with;
 use crate::cmd_viz::render_panels;
 use crate::labels_io::read_label_grid;
 use crate::progress;
+use crate::util::ModelArg;
 use anyhow::{Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
 use occ_data::labels::LearningMap;
@@ -19,7 +20,6 @@ use occ_eval::{
     score_semantic_kitti_folder, semantic_kitti_recall_by_visibility, EvalReport, FolderOptions,
     VisibilityRecall, SEMANTIC_KITTI_GROUND_CLASSES,
 };
-use occ_model::ModelKind;
 use occ_train::RunConfig;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -47,9 +47,9 @@ pub struct DemoArgs {
     /// Run configuration (default: the built-in configs/synthetic_tiny.toml).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Train this model instead: sparseocc++, sparseocc or dense.
-    #[arg(long)]
-    pub model: Option<String>,
+    /// Train this model instead.
+    #[arg(long, value_enum)]
+    pub model: Option<ModelArg>,
     /// Override the number of training steps.
     #[arg(long)]
     pub steps: Option<usize>,
@@ -153,8 +153,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         Some(p) => RunConfig::load(p)?,
         None => RunConfig::from_toml(SYNTHETIC_TINY, "built-in configs/synthetic_tiny.toml")?,
     };
-    if let Some(m) = &args.model {
-        cfg.model.kind = ModelKind::parse(m)?;
+    if let Some(m) = args.model {
+        cfg.model.kind = m.into();
     }
     if let Some(s) = args.steps {
         cfg.train.steps = s;

@@ -5,10 +5,11 @@
 
 use crate::backend::{self, Infer, Train};
 use crate::progress;
+use crate::util::ModelArg;
 use anyhow::{bail, Context, Result};
 use burn::module::{AutodiffModule, Module};
 use occ_eval::{format_table, EvalReport as Report};
-use occ_model::{ModelKind, OccNet};
+use occ_model::OccNet;
 use occ_train::dataset::Dataset;
 use occ_train::infer::predict_dataset;
 use occ_train::trainer::{train, TrainSummary};
@@ -31,9 +32,9 @@ pub struct TrainArgs {
     /// Continue from RUN/checkpoint.
     #[arg(long)]
     pub resume: bool,
-    /// Override the model: sparseocc++, sparseocc or dense.
-    #[arg(long)]
-    pub model: Option<String>,
+    /// Override the model.
+    #[arg(long, value_enum)]
+    pub model: Option<ModelArg>,
     /// Override the training sequences (comma-separated).
     #[arg(long, value_delimiter = ',')]
     pub sequences: Option<Vec<String>>,
@@ -77,8 +78,8 @@ pub fn resolve_config(args: &TrainArgs) -> Result<RunConfig> {
             saved.display()
         ),
     };
-    if let Some(m) = &args.model {
-        cfg.model.kind = ModelKind::parse(m)?;
+    if let Some(m) = args.model {
+        cfg.model.kind = m.into();
     }
     if let Some(s) = &args.sequences {
         cfg.data.train_sequences = s.iter().filter(|s| !s.is_empty()).cloned().collect();

@@ -21,3 +21,55 @@ pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     occ_data::formats::io::write_atomic(path, bytes)?;
     Ok(())
 }
+
+/// The `--model` / `--models` values: the three networks, named as in configs and tables
+/// ([`occ_model::ModelKind::name`]); `--help` lists them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ModelArg {
+    /// SparseOcc++.
+    #[value(name = "sparseocc++", alias = "sparseocc_pp", alias = "pp")]
+    SparseOccPP,
+    /// SparseOcc.
+    #[value(name = "sparseocc", alias = "so")]
+    SparseOcc,
+    /// The dense baseline.
+    #[value(name = "dense")]
+    Dense,
+}
+
+impl From<ModelArg> for occ_model::ModelKind {
+    fn from(m: ModelArg) -> Self {
+        match m {
+            ModelArg::SparseOccPP => Self::SparseOccPP,
+            ModelArg::SparseOcc => Self::SparseOcc,
+            ModelArg::Dense => Self::Dense,
+        }
+    }
+}
+
+impl ModelArg {
+    /// The model's name in configs, logs and tables.
+    pub fn name(self) -> &'static str {
+        occ_model::ModelKind::from(self).name()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ModelArg;
+    use clap::ValueEnum;
+
+    #[test]
+    fn model_values_parse_and_name_the_model_kinds() {
+        for m in ModelArg::value_variants() {
+            let name = m.to_possible_value().unwrap().get_name().to_string();
+            assert_eq!(name, m.name());
+            assert_eq!(ModelArg::from_str(&name, false).unwrap(), *m);
+        }
+        assert_eq!(
+            ModelArg::from_str("pp", false).unwrap(),
+            ModelArg::SparseOccPP
+        );
+        assert!(ModelArg::from_str("resnet", false).is_err());
+    }
+}
