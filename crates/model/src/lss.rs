@@ -31,8 +31,8 @@
 //!   feature that is exactly zero by chance still counts), as the paper's "gathering non-empty voxels".
 
 use crate::batch::Batch;
-use crate::conv2d_host::conv_bn;
 use crate::error::ModelError;
+use crate::kernels::conv2d_host::conv_bn;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d};
 use burn::prelude::*;

@@ -1,4 +1,4 @@
-//! The whole network: image encoder (ResNet + FPN, [`crate::fpn`]) in front of one of the three
+//! The whole network: image encoder (ResNet + FPN, [`crate::encoder::fpn`]) in front of one of the three
 //! occupancy models — SparseOcc++ (paper Sec. 4), SparseOcc (paper Sec. 3) or the dense baseline (the
 //! paper's "all modules disabled" row) — with their training losses. This is what training, inference
 //! and the benchmark run, through the [`OccNetwork`] interface.
@@ -8,9 +8,9 @@
 //! fields all have the paper's defaults.
 
 use crate::batch::Batch;
-use crate::dense_baseline::{DenseBaseline, DenseBaselineConfig};
+use crate::dense::{DenseBaseline, DenseBaselineConfig};
+use crate::encoder::fpn::{ImageEncoder, ImageEncoderConfig};
 use crate::error::ModelError;
-use crate::fpn::{ImageEncoder, ImageEncoderConfig};
 use crate::loss::sparseocc_class_weights;
 use crate::network::OccNetwork;
 use crate::output::ModelOutput;

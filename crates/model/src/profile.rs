@@ -244,7 +244,7 @@ mod tests {
             .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
             .init::<B>(&device);
         enable(true);
-        let y = crate::conv2d_host::conv_bn(
+        let y = crate::kernels::conv2d_host::conv_bn(
             &conv,
             None,
             Tensor::<B, 4>::ones([1, 3, 9, 7], &device),
@@ -256,7 +256,7 @@ mod tests {
         let grouped = Conv2dConfig::new([4, 4], [1, 1])
             .with_groups(2)
             .init::<B>(&device);
-        crate::conv2d_host::conv_bn(
+        crate::kernels::conv2d_host::conv_bn(
             &grouped,
             None,
             Tensor::<B, 4>::ones([2, 4, 2, 3], &device),

@@ -168,7 +168,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             line += &format!(" | scf planar s=-{sm}..{sm}: target {ht:?} predicted {hp:?}");
             let neg_p = pred.s_planar.iter().filter(|&&v| v < 0).count();
             let neg_v = pred.s_vertical.iter().filter(|&&v| v < 0).count();
-            let new = occ_model::propagation::propagated_voxels(
+            let new = occ_model::sparseocc_pp::propagation::propagated_voxels(
                 &pred.coords,
                 &pred.s_planar,
                 &pred.s_vertical,

@@ -203,9 +203,9 @@ fn to_table<T: Serialize>(v: &T) -> Result<toml::Table, String> {
 
 /// Fills the model sub-sections of a parsed config with their defaults (see [`RunConfig::from_toml`]).
 fn fill_model_defaults(root: &mut toml::Table) -> Result<(), String> {
-    use occ_model::backbone::ResNetConfig;
-    use occ_model::dense_baseline::DenseBaselineConfig;
-    use occ_model::fpn::FpnConfig;
+    use occ_model::dense::DenseBaselineConfig;
+    use occ_model::encoder::backbone::ResNetConfig;
+    use occ_model::encoder::fpn::FpnConfig;
     use occ_model::sparseocc::SparseOccConfig;
     use occ_model::sparseocc_pp::SparseOccPPConfig;
     let Some(toml::Value::Table(model)) = root.get_mut("model") else {

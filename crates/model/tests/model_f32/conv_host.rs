@@ -1,4 +1,4 @@
-//! The fused f32 host convolution of inference (`occ_model::conv2d_host::conv_bn_host`) against
+//! The fused f32 host convolution of inference (`occ_model::kernels::conv2d_host::conv_bn_host`) against
 //! burn's own f32 `Conv2d` -> `BatchNorm` -> `relu` (the f64 cases are in `model_f64/conv_train.rs`).
 
 use burn::backend::NdArray;
@@ -8,7 +8,7 @@ use burn::nn::{BatchNormConfig, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use burn::tensor::Distribution;
-use occ_model::conv2d_host::conv_bn_host;
+use occ_model::kernels::conv2d_host::conv_bn_host;
 
 #[test]
 fn f32_host_conv_equals_burn_conv_bn_relu() {

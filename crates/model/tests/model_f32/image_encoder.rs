@@ -7,9 +7,9 @@ use std::path::{Path, PathBuf};
 use burn::backend::NdArray;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
-use occ_model::backbone::{ResNet, ResNetConfig};
-use occ_model::fpn::{FpnConfig, ImageEncoder, ImageEncoderConfig};
-use occ_model::weights::{load_module, load_resnet, LoadOptions, WeightsError};
+use occ_model::encoder::backbone::{ResNet, ResNetConfig};
+use occ_model::encoder::fpn::{FpnConfig, ImageEncoder, ImageEncoderConfig};
+use occ_model::encoder::weights::{load_module, load_resnet, LoadOptions, WeightsError};
 use serde_json::Value;
 
 type B32 = NdArray<f32>;

@@ -6,7 +6,8 @@ use crate::so_common;
 
 use burn::backend::{Autodiff, NdArray};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
-use occ_model::sparseocc_pp::{downsample_labels, SparseOccPPConfig};
+use occ_model::sparseocc_pp::SparseOccPPConfig;
+use occ_model::targets::downsample_labels;
 use so_common::*;
 use std::time::Instant;
 

@@ -6,7 +6,7 @@ use crate::so_common;
 use burn::backend::{Autodiff, NdArray};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
-use occ_model::dense_baseline::DenseBaselineConfig;
+use occ_model::dense::DenseBaselineConfig;
 use occ_model::sparseocc::SparseOccConfig;
 use so_common::*;
 use std::time::Instant;

@@ -1,4 +1,4 @@
-//! The image-side convolutions of `occ_model::conv2d_host` against burn's own ops on the f64 NdArray
+//! The image-side convolutions of `occ_model::kernels::conv2d_host` against burn's own ops on the f64 NdArray
 //! backend: the fused inference path (`conv_bn_host`: im2col + GEMM with the batch norm folded in)
 //! against `Conv2d` -> `BatchNorm` -> `relu`, and the training op (`conv_autodiff`: im2col + GEMM
 //! forward, GEMM + col2im backward) against `Conv2d` on `Autodiff<NdArray<f64>>`. In this f64-only
@@ -12,7 +12,7 @@ use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use burn::tensor::Distribution;
-use occ_model::conv2d_host::{conv_autodiff, conv_bn_host};
+use occ_model::kernels::conv2d_host::{conv_autodiff, conv_bn_host};
 
 /// (cin, cout, k, stride, dilation, padding (t, l, b, r), bias, h, w)
 type Case = (

@@ -6,7 +6,7 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use occ_geometry::transform_point;
-use occ_model::dca::{project_column_bases, project_queries, DcaConfig};
+use occ_model::sparseocc_pp::dca::{project_column_bases, project_queries, DcaConfig};
 use pp_common::*;
 
 type B64 = burn::backend::NdArray<f64>;

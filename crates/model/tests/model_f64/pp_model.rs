@@ -6,8 +6,8 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use burn::tensor::TensorData;
-use occ_model::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
-use occ_model::scf_head::{ScfDecomposition, ScfLearning};
+use occ_model::sparseocc_pp::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
+use occ_model::sparseocc_pp::scf_head::{ScfDecomposition, ScfLearning};
 use occ_model::sparseocc_pp::{OutputResolution, PPOutput, SparseOccPP, SparseOccPPConfig};
 use pp_common::*;
 
@@ -61,7 +61,7 @@ fn shapes_at_every_stage() {
         assert_eq!(lvl.factor, [8, 4, 2][r]);
         assert_eq!(lvl.coords.len(), bsz * candidates, "level {r}");
         assert_eq!(lvl.logits.dims(), [bsz * candidates, 6]);
-        let k = occ_model::anchors::keep_count(candidates, cfg.keep_ratios[r]);
+        let k = occ_model::sparseocc_pp::anchors::keep_count(candidates, cfg.keep_ratios[r]);
         assert_eq!(lvl.kept.len(), bsz * k);
         for c in &lvl.coords {
             assert!((0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < lvl.dims[a]));
@@ -408,7 +408,7 @@ fn anchor_topk_keeps_the_best_scores_and_splits_them() {
     let levels = &out.anchor_levels;
     let mut n_item = 16usize;
     for (r, lvl) in levels.iter().enumerate() {
-        let k = occ_model::anchors::keep_count(n_item, cfg.keep_ratios[r]);
+        let k = occ_model::sparseocc_pp::anchors::keep_count(n_item, cfg.keep_ratios[r]);
         let scores = occupancy_score(&lvl.logits);
         for b in 0..2 {
             let rows: Vec<usize> = (0..lvl.coords.len())

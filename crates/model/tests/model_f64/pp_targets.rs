@@ -3,11 +3,10 @@
 
 use crate::pp_common;
 
-use occ_model::propagation::propagated_voxels;
-use occ_model::scf_head::{scf_isotropic, scf_targets, ScfDecomposition};
-use occ_model::sparseocc_pp::{
-    downsample_labels, monoscene_block_label, pp_targets, SparseOccPP, SparseOccPPConfig,
-};
+use occ_model::sparseocc_pp::propagation::propagated_voxels;
+use occ_model::sparseocc_pp::scf_head::{scf_isotropic, scf_targets, ScfDecomposition};
+use occ_model::sparseocc_pp::{pp_targets, SparseOccPP, SparseOccPPConfig};
+use occ_model::targets::{downsample_labels, monoscene_block_label};
 use pp_common::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -4,7 +4,7 @@
 use crate::pp_common;
 
 use burn::prelude::*;
-use occ_model::unet::SparseUNetConfig;
+use occ_model::sparseocc_pp::unet::SparseUNetConfig;
 use occ_sparse::SparseTensor;
 use pp_common::*;
 use rand::{Rng, SeedableRng};

@@ -9,12 +9,15 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::prelude::*;
 use burn::tensor::TensorData;
 use occ_geometry::mat4_inverse;
-use occ_model::hungarian::hungarian;
+use occ_model::loss::cross_entropy_weighted;
 use occ_model::lss::{depth_targets, feature_pixel_center, LssConfig};
-use occ_model::mask_head::{attention_bias, DecoderLayer, MaskHeadConfig, PoolMap, MASKED_BIAS};
-use occ_model::propagator::PropagatorConfig;
-use occ_model::pyramid::{interpolate, interpolation_weights};
-use occ_model::sparseocc::{downsample_labels_mode, weighted_cross_entropy};
+use occ_model::sparseocc::hungarian::hungarian;
+use occ_model::sparseocc::mask_head::{
+    attention_bias, DecoderLayer, MaskHeadConfig, PoolMap, MASKED_BIAS,
+};
+use occ_model::sparseocc::propagator::PropagatorConfig;
+use occ_model::sparseocc::pyramid::{interpolate, interpolation_weights};
+use occ_model::targets::downsample_labels_mode;
 use occ_sparse::{Coord, SparseTensor};
 use rand::Rng;
 use so_common::*;
@@ -704,7 +707,7 @@ fn weighted_cross_entropy_matches_formula() {
     let labels = [1u8, 255, 2];
     let w = [0.5, 2.0, 1.5];
     let t = Tensor::<B64, 2>::from_data(TensorData::new(logits.clone(), [3, 3]), &device);
-    let got = to_vec_f64(weighted_cross_entropy(t, &labels, &w).unwrap())[0];
+    let got = to_vec_f64(cross_entropy_weighted(t, &labels, &w, 255).unwrap())[0];
     let nll = |row: &[f64], y: usize| {
         let m = row.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let lse = m + row.iter().map(|v| (v - m).exp()).sum::<f64>().ln();
@@ -723,7 +726,7 @@ fn weighted_cross_entropy_matches_formula() {
 fn dense_baseline_conv_is_a_dense_conv3d() {
     use burn::tensor::module::conv3d;
     use burn::tensor::ops::ConvOptions;
-    use occ_model::dense_baseline::dense_conv_config;
+    use occ_model::dense::dense_conv_config;
     use occ_sparse::full_grid_coords;
     let device = Default::default();
     let mut r = rng(31);

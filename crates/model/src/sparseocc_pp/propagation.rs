@@ -1,6 +1,6 @@
 //! Geometry-guided propagation inside the model (SparseOcc++, paper Sec. 4.2, Algorithm 1).
 //!
-//! The anchors' predicted SCF distances (decoded on the host, [`crate::scf_head`]) drive
+//! The anchors' predicted SCF distances (decoded on the host, [`crate::sparseocc_pp::scf_head`]) drive
 //! `occ_geometry::scf::propagate_batched` (Algorithm 1 on sparse anchors: interior anchors `s < 0`
 //! dilate by the planar kernel `[2|s|+1, 2|s|+1, 1]` and the vertical kernel `[1, 1, 2|s|+1]`,
 //! clipped to the grid, per batch item); the new voxels join the anchors with zero features
@@ -15,7 +15,7 @@
 //! Only host work on coordinates; no features are touched except the final zero-extension.
 
 use crate::error::ModelError;
-use crate::scf_head::ScfDecomposition;
+use crate::sparseocc_pp::scf_head::ScfDecomposition;
 use burn::prelude::*;
 use occ_geometry::scf::propagate_batched;
 use occ_sparse::{ops::extend_zero, Coord, SparseTensor};

@@ -15,7 +15,7 @@
 //!
 //! Module field names equal torchvision's state-dict names (`conv1`, `bn1`, `layer1.0.conv1`,
 //! `layer2.0.downsample.0`, `layer2.0.downsample.1`, ...) so a torchvision checkpoint loads with
-//! [`crate::weights`] without renaming; the classifier (`avgpool`, `fc`) is not built.
+//! [`crate::encoder::weights`] without renaming; the classifier (`avgpool`, `fc`) is not built.
 //!
 //! `base_width` is the stem width (torchvision: 64); a small value gives a tiny CPU model with the same
 //! structure. It is *not* torchvision's `width_per_group`. Stages after the last requested output
@@ -24,7 +24,7 @@
 //! Batch norm follows burn: batch statistics on an autodiff backend, running statistics otherwise
 //! (call `.valid()` on an autodiff module for evaluation-mode normalisation).
 
-use crate::conv2d_host::conv_bn;
+use crate::kernels::conv2d_host::conv_bn;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};

@@ -10,7 +10,7 @@
 //! uniform weights, zero biases. Field names `lateral_convs.{i}` / `fpn_convs.{i}` (mmdet's keys without
 //! the `ConvModule` `.conv` level).
 
-use crate::conv2d_host::conv_bn;
+use crate::kernels::conv2d_host::conv_bn;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -20,7 +20,7 @@ use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::Tensor;
 
-use crate::backbone::{ResNet, ResNetConfig};
+use crate::encoder::backbone::{ResNet, ResNetConfig};
 use crate::error::ModelError;
 
 /// Configuration of an [`Fpn`]; the input channels come from the backbone (see [`FpnConfig::init`]).

@@ -27,9 +27,9 @@
 //! head too.
 
 use crate::batch::Batch;
-use crate::dca::ViewHits;
 use crate::error::ModelError;
 use crate::loss::DepthBins;
+use crate::sparseocc_pp::dca::ViewHits;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::prelude::*;
@@ -115,8 +115,8 @@ impl<B: Backend> DepthGate<B> {
         if stride == 0 {
             return Err(ModelError::Input("depth gate: stride 0".into()));
         }
-        let hidden = crate::conv2d_host::conv_bn(&self.conv1, None, feat, true);
-        let logits = crate::conv2d_host::conv_bn(&self.conv2, None, hidden, false);
+        let hidden = crate::kernels::conv2d_host::conv_bn(&self.conv1, None, feat, true);
+        let logits = crate::kernels::conv2d_host::conv_bn(&self.conv2, None, hidden, false);
         let dims = logits.dims();
         if dims[1] != bins.num_bins {
             return Err(ModelError::Config(format!(

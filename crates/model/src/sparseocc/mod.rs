@@ -7,20 +7,27 @@
 //! `upsample = lss_downsample`; the loss terms come from [`SoOutput::losses`] (docs/losses.md §7).
 //!
 //! Label grid for the losses: the full-resolution target downsampled with the official in-network
-//! rule ([`downsample_labels_mode`]) to the prediction grid; the mask targets and the coarse loss are
+//! rule ([`crate::targets::downsample_labels_mode`]) to the prediction grid; the mask targets and the coarse loss are
 //! both computed there (the official code also point-samples the full-resolution grid for the masks;
 //! here masks and predictions share the 1/2-resolution grid).
 
+pub mod hungarian;
+pub mod mask_head;
+pub mod propagator;
+pub mod pyramid;
+
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
-use crate::mask_head::{HeadOutput, MaskHead, MaskHeadConfig, MemoryLevel, SetLossWeights};
 use crate::output::ModelOutput;
-use crate::propagator::{PropagatorConfig, SparseLatentPropagator};
-use crate::pyramid::{PyramidConfig, SparsePyramid};
+use crate::sparseocc::mask_head::{
+    HeadOutput, MaskHead, MaskHeadConfig, MemoryLevel, SetLossWeights,
+};
+use crate::sparseocc::propagator::{PropagatorConfig, SparseLatentPropagator};
+use crate::sparseocc::pyramid::{PyramidConfig, SparsePyramid};
+use crate::targets::{check_input, targets_at};
 use burn::prelude::*;
-use burn::tensor::activation::log_softmax;
-use burn::tensor::TensorData;
 use occ_sparse::{Coord, SparseConvBackend};
 
 /// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (docs/reference_models.md §1);
@@ -76,7 +83,7 @@ pub struct SparseOccConfig {
     #[config(default = 1536)]
     pub ffn_channels: usize,
     /// Coarse filter threshold on the non-empty probability (0: the official top-k only, see
-    /// [`crate::mask_head`]).
+    /// [`crate::sparseocc::mask_head`]).
     #[config(default = 0.0)]
     pub coarse_threshold: f64,
     /// Coarse filter cap as a fraction of the prediction-grid volume.
@@ -311,49 +318,6 @@ impl<B: SparseConvBackend> SparseOcc<B> {
     }
 }
 
-pub(crate) fn check_input<B: Backend>(
-    feats: &Tensor<B, 4>,
-    batch: &Batch<B>,
-    feat_channels: usize,
-    full_dims: [usize; 3],
-) -> Result<(), ModelError> {
-    let c = feats.dims()[1];
-    if c != feat_channels {
-        return Err(ModelError::Input(format!(
-            "feature map has {c} channels, the model was configured for {feat_channels}"
-        )));
-    }
-    if batch.grid.dims != full_dims {
-        return Err(ModelError::Input(format!(
-            "batch grid {:?} differs from the configured full_dims {full_dims:?}",
-            batch.grid.dims
-        )));
-    }
-    Ok(())
-}
-
-/// Full-resolution targets of a batch downsampled to the prediction grid, one vector per item.
-pub(crate) fn targets_at<B: Backend>(
-    batch: &Batch<B>,
-    full_dims: [usize; 3],
-    ratio: usize,
-) -> Result<Vec<Vec<u8>>, ModelError> {
-    let target = batch.target.as_ref().ok_or_else(|| {
-        ModelError::Input("losses need batch.target (the full-resolution labels)".into())
-    })?;
-    if target.len() != batch.batch_size() {
-        return Err(ModelError::Input(format!(
-            "batch.target has {} items, the batch has {}",
-            target.len(),
-            batch.batch_size()
-        )));
-    }
-    target
-        .iter()
-        .map(|t| downsample_labels_mode(t, full_dims, ratio))
-        .collect()
-}
-
 impl<B: Backend> SoOutput<B> {
     /// Loss terms (docs/losses.md §5 and §7): for every head prediction `mask_cls` (weight 2, no-object 0.1),
     /// `mask_bce` and `mask_dice` (weight 5) — prefixed `d{i}.` for the auxiliary ones —, `depth`
@@ -398,109 +362,14 @@ impl<B: Backend> SoOutput<B> {
             .collect();
         out.push((
             "coarse_ce".to_string(),
-            weighted_cross_entropy(a.coarse_logits.clone(), &site_labels, class_weights)?
-                .mul_scalar(a.coarse_weight),
+            cross_entropy_weighted(
+                a.coarse_logits.clone(),
+                &site_labels,
+                class_weights,
+                IGNORE_LABEL,
+            )?
+            .mul_scalar(a.coarse_weight),
         ));
         Ok(out)
     }
-}
-
-/// The official in-network label downsampling (SparseOcc `loss_voxel`, docs/formats.md §2.6): per `r³` block,
-/// all-zero → 0; otherwise the mode of the block where each 0 is replaced by a unique negative number
-/// and a negative mode becomes 255 — i.e. the most frequent non-zero label (255 counts as a label),
-/// ties to the smallest value (`torch.mode`), and when no label occurs twice while the block contains a
-/// zero, a negative number wins the tie, giving 255.
-///
-/// `labels`: flat C order over `dims`; output flat C order over `dims / r` (integer division).
-pub fn downsample_labels_mode(
-    labels: &[u8],
-    dims: [usize; 3],
-    r: usize,
-) -> Result<Vec<u8>, ModelError> {
-    let [x, y, z] = dims;
-    if labels.len() != x * y * z || r == 0 {
-        return Err(ModelError::Input(format!(
-            "sparseocc.rs: {} labels for a {dims:?} grid, ratio {r}",
-            labels.len()
-        )));
-    }
-    if r == 1 {
-        return Ok(labels.to_vec());
-    }
-    let [ox, oy, oz] = [x / r, y / r, z / r];
-    let mut out = vec![0u8; ox * oy * oz];
-    let mut counts = [0u32; 256];
-    for i in 0..ox {
-        for j in 0..oy {
-            for k in 0..oz {
-                counts.iter_mut().for_each(|c| *c = 0);
-                let mut zeros = 0u32;
-                for a in 0..r {
-                    for b in 0..r {
-                        for c in 0..r {
-                            let l = labels[((i * r + a) * y + j * r + b) * z + k * r + c];
-                            if l == 0 {
-                                zeros += 1;
-                            } else {
-                                counts[l as usize] += 1;
-                            }
-                        }
-                    }
-                }
-                let best = (1..256).max_by(|&p, &q| counts[p].cmp(&counts[q]).then(q.cmp(&p)));
-                let v = match best {
-                    Some(l) if counts[l] == 0 => 0,
-                    Some(l) if counts[l] == 1 && zeros > 0 => 255,
-                    Some(l) => l as u8,
-                    None => 0,
-                };
-                out[(i * oy + j) * oz + k] = v;
-            }
-        }
-    }
-    Ok(out)
-}
-
-/// Weighted cross-entropy with ignore index 255 (PyTorch `CrossEntropyLoss(weight, ignore_index=255,
-/// reduction='mean')`): `Σ w_y · (−log softmax)_y / Σ w_y` over the non-ignored rows; 0 (with a
-/// gradient path) when every row is ignored.
-///
-/// # Shapes
-/// - logits `[N, C]`, labels `N` -> `[1]`
-pub fn weighted_cross_entropy<B: Backend>(
-    logits: Tensor<B, 2>,
-    labels: &[u8],
-    class_weights: &[f64],
-) -> Result<Tensor<B, 1>, ModelError> {
-    let [n, c] = logits.dims();
-    if labels.len() != n || class_weights.len() != c {
-        return Err(ModelError::Input(format!(
-            "sparseocc.rs cross-entropy: {} labels / {} weights for logits [{n}, {c}]",
-            labels.len(),
-            class_weights.len()
-        )));
-    }
-    let mut w = vec![0f32; n * c];
-    let mut total = 0.0f64;
-    for (i, &l) in labels.iter().enumerate() {
-        if l == 255 {
-            continue;
-        }
-        let l = l as usize;
-        if l >= c {
-            return Err(ModelError::Input(format!(
-                "sparseocc.rs cross-entropy: label {l} >= {c} classes"
-            )));
-        }
-        w[i * c + l] = class_weights[l] as f32;
-        total += class_weights[l];
-    }
-    let device = logits.device();
-    let wt = Tensor::<B, 2>::from_data(TensorData::new(w, [n, c]), &device);
-    let s = (log_softmax(logits, 1) * wt).sum().neg();
-    Ok(if total > 0.0 {
-        s.div_scalar(total).reshape([1])
-    } else {
-        s.mul_scalar(0.0).reshape([1])
-    })
 }

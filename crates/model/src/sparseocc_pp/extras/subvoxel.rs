@@ -8,7 +8,7 @@
 //! is the learned alternative (a sparse transposed convolution, kernel 2 and stride 2, followed by a
 //! per-voxel MLP): every parent `(b, x, y, z)` becomes its children `(b, 2x+dx, 2y+dy, 2z+dz)`
 //! (parent-major rows, child index `4dx + 2dy + dz`, the order of the anchor split in
-//! [`crate::anchors`]) with feature `parent + E[child]`, and `ReLU → Linear → ReLU → classifier`
+//! [`crate::sparseocc_pp::anchors`]) with feature `parent + E[child]`, and `ReLU → Linear → ReLU → classifier`
 //! gives the logits (the classifier is the model's own final linear layer, shared with the `1/2`
 //! output it replaces). Children of voxels that were not predicted stay empty, as in the `1/2` output. Switched on
 //! by `SparseOccPPConfig::output = SubVoxel` (the synthetic CPU demo uses it: its ground is one

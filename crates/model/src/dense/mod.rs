@@ -10,13 +10,14 @@
 //! burn's `conv3d`. Weights use the sparse layout `[Cout, kx, ky, kz, Cin]`.
 //!
 //! Losses: weighted cross-entropy (ignore 255) over all prediction-grid voxels against the
-//! downsampled labels ([`crate::sparseocc::downsample_labels_mode`]) and the LSS depth loss.
+//! downsampled labels ([`crate::targets::downsample_labels_mode`]) and the LSS depth loss.
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
-use crate::sparseocc::{check_input, targets_at, weighted_cross_entropy};
+use crate::targets::{check_input, targets_at};
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
@@ -209,7 +210,7 @@ impl<B: Backend> DenseOutput<B> {
         let flat: Vec<u8> = labels.into_iter().flatten().collect();
         let mut out = vec![(
             "ce".to_string(),
-            weighted_cross_entropy(self.out.logits.clone(), &flat, class_weights)?,
+            cross_entropy_weighted(self.out.logits.clone(), &flat, class_weights, IGNORE_LABEL)?,
         )];
         if let Some(t) = &self.aux.depth_targets {
             out.push((

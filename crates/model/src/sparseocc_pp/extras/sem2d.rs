@@ -17,7 +17,7 @@
 //!    holding its nearest point (camera depth) among the points whose voxel is occupied and
 //!    labelled (class 0 = empty and 255 = ignore are skipped). Pixels without such a point are
 //!    ignored.
-//! 3. The loss is the class-weighted cross-entropy of [`crate::sparseocc::weighted_cross_entropy`].
+//! 3. The loss is the class-weighted cross-entropy of [`crate::loss::cross_entropy_weighted`] (ignore 255).
 //!
 //! The head's output is not used by the 3D network: its only effect is the gradient it sends into
 //! the image encoder.
@@ -28,8 +28,8 @@
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
 use crate::lss::feature_pixel_of_point;
-use crate::sparseocc::weighted_cross_entropy;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::prelude::*;
@@ -90,10 +90,10 @@ impl<B: Backend> Sem2dHead<B> {
     /// - feat: `[B·V, C, h, w]` → logits `[B·V, K, h, w]`
     pub fn forward(&self, feat: Tensor<B, 4>, stride: usize) -> Sem2dMap<B> {
         Sem2dMap {
-            logits: crate::conv2d_host::conv_bn(
+            logits: crate::kernels::conv2d_host::conv_bn(
                 &self.conv2,
                 None,
-                crate::conv2d_host::conv_bn(&self.conv1, None, feat, true),
+                crate::kernels::conv2d_host::conv_bn(&self.conv1, None, feat, true),
                 false,
             ),
             stride: stride.max(1),
@@ -127,7 +127,7 @@ impl<B: Backend> Sem2dMap<B> {
             .clone()
             .permute([0, 2, 3, 1])
             .reshape([n * h * w, k]);
-        weighted_cross_entropy(rows, &t, class_weights).map(Some)
+        cross_entropy_weighted(rows, &t, class_weights, IGNORE_LABEL).map(Some)
     }
 }
 

@@ -4,7 +4,7 @@
 //! - **Orthogonal decomposition** (default): two heads, planar `s^{X-Y}` and vertical `s^Z`.
 //!   Ablation `Scalar`: one isotropic distance `s`, whose ground truth is Algorithm 2 with the cubic
 //!   kernel `[2s+1]^3` ([`scf_isotropic`]) and whose propagation dilates by the same cube
-//!   (see [`crate::propagation`]); it uses `s_max_planar` as its range.
+//!   (see [`crate::sparseocc_pp::propagation`]); it uses `s_max_planar` as its range.
 //! - **Discretized learning** (default): each head is an MLP `D → D → 2·s_max + 1` giving logits over
 //!   the bins `d_k = k - s_max`, `k = 0..2·s_max` (so bin index = `s + s_max`); the predicted distance is
 //!   the arg-max bin. Ablation `Regression`: the MLP outputs one value `[N, 1]` (in voxels), the

@@ -28,8 +28,8 @@
 //!    sites; the model output carries `ln(score)` as logits (same argmax).
 
 use crate::error::ModelError;
-use crate::hungarian::hungarian;
-use crate::pyramid::parent_coord;
+use crate::sparseocc::hungarian::hungarian;
+use crate::sparseocc::pyramid::parent_coord;
 use burn::module::{Initializer, Param};
 use burn::nn::{GroupNorm, GroupNormConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;

@@ -26,7 +26,7 @@
 //!
 //! Cost: host work is one projection per (voxel, view) (a loop over coordinates). On the CPU the
 //! sampling is one host loop over the (voxel, view) hits (`M·L·N_s·4·D/M` multiply-adds per hit, no
-//! intermediate tensors; [`crate::dca_host`]), in training registered as one autodiff op with its own
+//! intermediate tensors; [`crate::kernels::dca_host`]), in training registered as one autodiff op with its own
 //! backward pass; on other backends (CUDA) it is one batched `grid_sample` per level over all hits,
 //! padded per image to the largest number of hits of one image.
 
@@ -423,7 +423,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
     }
 
     /// [`Self::aggregate`] with every hit's samples multiplied by `gate[hit]` (`[nh]`, e.g. the
-    /// depth gate of [`crate::depth_gate`]) before the average over views; `None` = all ones.
+    /// depth gate of [`crate::sparseocc_pp::extras::depth_gate`]) before the average over views; `None` = all ones.
     pub fn aggregate_gated(
         &self,
         query: Tensor<B, 2>,
@@ -444,9 +444,9 @@ impl<B: Backend> DeformableCrossAttention<B> {
         if crate::profile::counting() {
             crate::profile::add_macs("dca_sampling", self.sampling_macs(hits.len()));
         }
-        if crate::host_data::is_host_backend::<B>() {
+        if crate::kernels::host_data::is_host_backend::<B>() {
             self.aggregate_host(query, hits, feats, strides, gate)
-        } else if crate::host_data::is_host_autodiff::<B>() {
+        } else if crate::kernels::host_data::is_host_autodiff::<B>() {
             self.aggregate_host_autodiff(query, hits, feats, strides, gate)
         } else {
             self.aggregate_tensor_ops(query, hits, feats, strides, gate)
@@ -471,7 +471,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
             return Ok(zeros);
         }
-        let out = if crate::host_data::is_host_f32::<B>() {
+        let out = if crate::kernels::host_data::is_host_f32::<B>() {
             self.aggregate_host_typed::<f32>(query, hits, feats, strides, gate)
         } else {
             self.aggregate_host_typed::<f64>(query, hits, feats, strides, gate)
@@ -481,7 +481,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         })
     }
 
-    fn aggregate_host_typed<T: crate::host_data::Elem>(
+    fn aggregate_host_typed<T: crate::kernels::host_data::Elem>(
         &self,
         query: Tensor<B, 2>,
         hits: &ViewHits,
@@ -506,7 +506,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
     }
 
     /// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
-    /// row, column order; `D` head-major), the layout of [`crate::dca_host`].
+    /// row, column order; `D` head-major), the layout of [`crate::kernels::dca_host`].
     fn value_rows(&self, feats: &[Tensor<B, 4>]) -> Tensor<B, 2> {
         let rows: Vec<Tensor<B, 2>> = feats
             .iter()
@@ -524,7 +524,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         hits: &ViewHits,
         feats: &[Tensor<B, 4>],
         strides: &[usize],
-    ) -> crate::dca_host::SampleLayout {
+    ) -> crate::kernels::dca_host::SampleLayout {
         let dims: Vec<(usize, usize, usize)> = feats
             .iter()
             .map(|f| {
@@ -532,7 +532,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
                 (bv, h, w)
             })
             .collect();
-        crate::dca_host::SampleLayout::new(
+        crate::kernels::dca_host::SampleLayout::new(
             hits,
             &dims,
             strides,
@@ -542,7 +542,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         )
     }
 
-    /// [`Self::aggregate`] on `Autodiff<NdArray>`: the host loops of [`crate::dca_host`] registered
+    /// [`Self::aggregate`] on `Autodiff<NdArray>`: the host loops of [`crate::kernels::dca_host`] registered
     /// as one autodiff op (forward and backward), the same function as
     /// [`Self::aggregate_tensor_ops`].
     pub fn aggregate_host_autodiff(
@@ -559,7 +559,13 @@ impl<B: Backend> DeformableCrossAttention<B> {
         let (offsets, weights) = self.sampling(query.clone());
         let values = self.value_rows(feats);
         let layout = self.sample_layout(hits, feats, strides);
-        match crate::dca_host::sample_autodiff(layout, values, offsets, weights, gate.clone()) {
+        match crate::kernels::dca_host::sample_autodiff(
+            layout,
+            values,
+            offsets,
+            weights,
+            gate.clone(),
+        ) {
             Some(out) => Ok(out),
             // Another backend, or tensors of another float type than the backend's (burn 0.21 fixes
             // a device's dtype at the first tensor of the process): the tensor-op composition.

@@ -14,10 +14,10 @@
 //!
 //! On the CPU training backend (`Autodiff<NdArray>`) the convolution alone (BatchNorm stays burn's,
 //! with batch statistics) is one autodiff op computed the same way, with its backward as two GEMMs
-//! and a col2im per image ([`conv_autodiff`]); with the DCA op of [`crate::dca_host`] it made the
+//! and a col2im per image ([`conv_autodiff`]); with the DCA op of [`crate::kernels::dca_host`] it made the
 //! demo's training step 3.4x faster. GPU backends take burn's own `Conv2d` and `BatchNorm`.
 
-use crate::host_data::{
+use crate::kernels::host_data::{
     from_ad, host_vec, is_host_autodiff, is_host_backend, is_host_f32, read, to_ad,
     with_host_slice, Elem,
 };

@@ -1,9 +1,9 @@
-//! The sampling step of deformable cross attention ([`crate::dca`]) as host loops with their own
+//! The sampling step of deformable cross attention ([`crate::sparseocc_pp::dca`]) as host loops with their own
 //! backward pass, for burn-ndarray with and without autodiff (the CPU training and inference paths).
 //!
 //! `out[q] = 1/|V_q| · Σ_{hits h of q} g_h · Σ_{m, l, j} w_{qmlj} · bilinear(values_l[img_h], ref_h/s_l + Δp_{qmlj})[head m]`
 //!
-//! This is the function [`crate::dca::DeformableCrossAttention::aggregate_tensor_ops`] composes from
+//! This is the function [`crate::sparseocc_pp::dca::DeformableCrossAttention::aggregate_tensor_ops`] composes from
 //! `select`, `grid_sample` and `select_assign` (zero padding, `align_corners = false`), computed the
 //! way Deformable DETR's `MSDeformAttn` kernel does: one pass over the (hit, head, level, point) taps
 //! forward, one pass backward that writes the gradients of the value maps (scattered over the four
@@ -16,8 +16,8 @@
 //! ([`Backward`]), so the rest of the model is unchanged; on any other backend (CUDA) the tensor-op
 //! composition is used. The tests in `dca.rs` check values and every gradient against it.
 
-use crate::dca::ViewHits;
-use crate::host_data::{from_ad, host_vec, to_ad, AdTensor, Elem};
+use crate::kernels::host_data::{from_ad, host_vec, to_ad, AdTensor, Elem};
+use crate::sparseocc_pp::dca::ViewHits;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};

@@ -13,7 +13,7 @@
 //!
 //! Key handling (burn-store's applier with its PyTorch adapter):
 //! - file keys are matched to burn module paths (`layer1.0.conv1.weight`, `layer2.0.downsample.1.bias`,
-//!   ...); the field names of [`crate::backbone::ResNet`] equal torchvision's, so no renaming is needed;
+//!   ...); the field names of [`crate::encoder::backbone::ResNet`] equal torchvision's, so no renaming is needed;
 //! - batch norm `weight`/`bias` load into burn's `gamma`/`beta`; `running_mean`/`running_var` load as
 //!   they are; burn-named files (`gamma`/`beta`) load too;
 //! - tensors the model does not have (`fc.*`, `num_batches_tracked`, stages not built) are ignored and
@@ -42,7 +42,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::{get_device_settings, DType, Element, Shape, TensorData};
 use thiserror::Error;
 
-use crate::backbone::ResNet;
+use crate::encoder::backbone::ResNet;
 
 /// Namespace given to file keys outside [`LoadOptions::key_prefix`] so they never match a module path.
 const IGNORED: &str = "__outside_prefix__";

@@ -1,8 +1,8 @@
 //! SparseOcc++ assembly (paper Sec. 4): multi-scale image features → sparse anchors
-//! ([`crate::anchors`]) → SCF heads ([`crate::scf_head`]) → geometry-guided propagation
-//! ([`crate::propagation`]) → DCA on the completed set ([`crate::dca`]) → sparse U-Net
-//! ([`crate::unet`]) → per-voxel class logits at `1/2` resolution (or, with
-//! [`OutputResolution::SubVoxel`], at full resolution through [`crate::subvoxel`]).
+//! ([`crate::sparseocc_pp::anchors`]) → SCF heads ([`crate::sparseocc_pp::scf_head`]) → geometry-guided propagation
+//! ([`crate::sparseocc_pp::propagation`]) → DCA on the completed set ([`crate::sparseocc_pp::dca`]) → sparse U-Net
+//! ([`crate::sparseocc_pp::unet`]) → per-voxel class logits at `1/2` resolution (or, with
+//! [`OutputResolution::SubVoxel`], at full resolution through [`crate::sparseocc_pp::extras::subvoxel`]).
 //!
 //! The image encoder is not part of this module: `forward` takes its multi-scale features. Losses are
 //! not computed here either: [`PPOutput`] carries every prediction and [`pp_targets`] builds the
@@ -13,23 +13,35 @@
 //! bins / regression, propagation on / off ("off" = the "sparse anchor voxel only" row: the final
 //! stage runs on the anchors themselves and no SCF heads exist).
 
-use crate::anchors::{column_floor_z_m, combined_gate};
-use crate::anchors::{AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction};
+pub mod anchors;
+pub mod dca;
+pub mod extras;
+pub mod propagation;
+pub mod scf_head;
+pub mod unet;
+
 use crate::batch::Batch;
-use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCrossAttention};
-use crate::depth_gate::{DepthGate, DepthGateConfig, DepthMap};
-use crate::depth_oracle::DepthOracle;
 use crate::error::ModelError;
 use crate::loss::{ce::cross_entropy, occ_loss};
 use crate::output::ModelOutput;
-use crate::propagation::propagate_anchors;
-use crate::scan_oracle::ScanOracle;
-use crate::scf_head::{
+use crate::sparseocc_pp::anchors::{column_floor_z_m, combined_gate};
+use crate::sparseocc_pp::anchors::{
+    AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction,
+};
+use crate::sparseocc_pp::dca::{
+    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention,
+};
+use crate::sparseocc_pp::extras::depth_gate::{DepthGate, DepthGateConfig, DepthMap};
+use crate::sparseocc_pp::extras::depth_oracle::DepthOracle;
+use crate::sparseocc_pp::extras::scan_oracle::ScanOracle;
+use crate::sparseocc_pp::extras::sem2d::{Sem2dHead, Sem2dHeadConfig, Sem2dMap};
+use crate::sparseocc_pp::extras::subvoxel::{SubVoxelHead, SubVoxelHeadConfig};
+use crate::sparseocc_pp::propagation::propagate_anchors;
+use crate::sparseocc_pp::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
-use crate::sem2d::{Sem2dHead, Sem2dHeadConfig, Sem2dMap};
-use crate::subvoxel::{SubVoxelHead, SubVoxelHeadConfig};
-use crate::unet::{SparseUNet, SparseUNetConfig};
+use crate::sparseocc_pp::unet::{SparseUNet, SparseUNetConfig};
+use crate::targets::downsample_labels;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use occ_sparse::{Coord, SparseConvBackend};
@@ -40,7 +52,7 @@ pub enum OutputResolution {
     /// The paper's: logits at `1/2` of the label grid (upsampled ×2 for scoring).
     Half,
     /// Not in the paper: a learned split of every `1/2` voxel into its 8 full-resolution children
-    /// ([`crate::subvoxel`]); `L_occ` is then computed at full resolution.
+    /// ([`crate::sparseocc_pp::extras::subvoxel`]); `L_occ` is then computed at full resolution.
     SubVoxel,
 }
 
@@ -115,7 +127,7 @@ pub struct SparseOccPPConfig {
     #[config(default = "OutputResolution::Half")]
     pub output: OutputResolution,
     /// Not in the paper: gate every DCA sample by a LiDAR-supervised depth map of the finest image
-    /// level ([`crate::depth_gate`]; DFA3D's remedy for the depth ambiguity of 2D-to-3D attention).
+    /// level ([`crate::sparseocc_pp::extras::depth_gate`]; DFA3D's remedy for the depth ambiguity of 2D-to-3D attention).
     #[config(default = false)]
     pub depth_gate: bool,
     /// Depth bins `[d_min, d_max, step]` (metres) of the depth gate.
@@ -126,7 +138,7 @@ pub struct SparseOccPPConfig {
     #[config(default = 1.0)]
     pub depth_loss_weight: f64,
     /// Not in the paper: an auxiliary per-pixel class head on the finest image level, supervised by
-    /// the voxel labels of the LiDAR points projected into the image ([`crate::sem2d`]). Only a
+    /// the voxel labels of the LiDAR points projected into the image ([`crate::sparseocc_pp::extras::sem2d`]). Only a
     /// training signal for the image encoder; the 3D network does not read its output.
     #[config(default = false)]
     pub sem2d_aux: bool,
@@ -135,12 +147,12 @@ pub struct SparseOccPPConfig {
     pub sem2d_loss_weight: f64,
     /// DIAGNOSTIC, not a model option (needs the LiDAR scan at test time): gate every DCA sample by
     /// whether its voxel lies at the LiDAR surface depth of its reference pixel
-    /// ([`crate::depth_oracle`]).
+    /// ([`crate::sparseocc_pp::extras::depth_oracle`]).
     #[config(default = false)]
     pub depth_oracle: bool,
     /// Not in the paper: follow every DCA (the three anchor stages and the final one) by a second DCA
     /// block whose reference points are the projections of the voxels' column bases, the lowest layer
-    /// of the grid under each voxel ([`crate::dca::project_column_bases`]): the pixel where what
+    /// of the grid under each voxel ([`crate::sparseocc_pp::dca::project_column_bases`]): the pixel where what
     /// stands under a voxel meets the ground, the depth cue of ground-standing objects (BEVFormer's
     /// pillar reference points). About twice the DCA cost.
     #[config(default = false)]
@@ -148,7 +160,7 @@ pub struct SparseOccPPConfig {
     /// DIAGNOSTIC, not a model option (needs the LiDAR scan at test time): tell every anchor
     /// candidate and every final voxel which share of it holds a return of the frame's scan and
     /// which share a ray crossed, through a learned embedding added to its query
-    /// ([`crate::scan_oracle`]): what perfect depth would give the 3D part.
+    /// ([`crate::sparseocc_pp::extras::scan_oracle`]): what perfect depth would give the 3D part.
     #[config(default = false)]
     pub scan_oracle: bool,
     /// With `scan_oracle`: use the whole 360° scan, not only the returns the cameras see.
@@ -512,58 +524,6 @@ pub struct PPTargets {
     pub scf: Option<ScfTargets>,
 }
 
-/// Label of a `ds³` block by the MonoScene / SSC downsampling rule (docs/formats.md §2.6, `_downsample_label`):
-/// if empty (0) and ignore (255) voxels are more than 95 % of the block, the block is 0 when there are
-/// more 0s than 255s and 255 otherwise (ties → 255); else the most frequent label in `1..=254` (ties →
-/// the smaller id). `labels` yields the block's labels.
-pub fn monoscene_block_label(labels: impl Iterator<Item = u8>, ds: usize) -> u8 {
-    let mut counts = [0u32; 256];
-    for l in labels {
-        counts[l as usize] += 1;
-    }
-    let (n0, n255) = (counts[0] as f64, counts[255] as f64);
-    let cells = (ds * ds * ds) as f64;
-    if n0 + n255 > 0.95 * cells {
-        return if n0 > n255 { 0 } else { 255 };
-    }
-    let (mut best, mut best_n) = (0usize, 0u32);
-    for (c, &n) in counts.iter().enumerate().take(255).skip(1) {
-        if n > best_n {
-            best = c;
-            best_n = n;
-        }
-    }
-    best as u8
-}
-
-/// The whole full-resolution grid downsampled by `ds` with [`monoscene_block_label`] (flat
-/// `[X/ds][Y/ds][Z/ds]`). Voxels of incomplete blocks at the upper border are dropped (dims must be
-/// multiples of `ds` for an exact result).
-pub fn downsample_labels(full: &[u8], full_dims: [usize; 3], ds: usize) -> Vec<u8> {
-    let ds = ds.max(1);
-    let d = full_dims.map(|n| n / ds);
-    let [fy, fz] = [full_dims[1], full_dims[2]];
-    let mut out = Vec::with_capacity(d[0] * d[1] * d[2]);
-    for x in 0..d[0] {
-        for y in 0..d[1] {
-            for z in 0..d[2] {
-                let it = (0..ds).flat_map(move |dx| {
-                    (0..ds).flat_map(move |dy| {
-                        (0..ds).map(move |dz| {
-                            ((x * ds + dx) * fy + (y * ds + dy)) * fz + (z * ds + dz)
-                        })
-                    })
-                });
-                out.push(monoscene_block_label(
-                    it.map(|i| full.get(i).copied().unwrap_or(255)),
-                    ds,
-                ));
-            }
-        }
-    }
-    out
-}
-
 fn lookup(coords: &[Coord], grids: &[Vec<u8>], dims: [usize; 3]) -> Result<Vec<u8>, ModelError> {
     coords
         .iter()
@@ -666,7 +626,7 @@ impl<B: Backend> PPOutput<B> {
     /// - `depth` (only with the depth gate, not in the paper, and only when the batch has LiDAR
     ///   points): the depth BCE of [`crate::lss::depth_loss`], times `depth_loss_weight`;
     /// - `sem2d` (only with `sem2d_aux`, not in the paper, and only when the batch has LiDAR points):
-    ///   the class-weighted CE of the image semantic head ([`crate::sem2d`]), times
+    ///   the class-weighted CE of the image semantic head ([`crate::sparseocc_pp::extras::sem2d`]), times
     ///   `sem2d_loss_weight`.
     ///
     /// Terms whose labels are all ignored are left out. `class_weights`: `num_classes` weights.

@@ -4,7 +4,7 @@
 //! the full label resolution.
 //! 1. Level 0: the dense candidate grid `full/8` with one learned embedding per voxel (shared by all
 //!    batch items) plus a position encoding.
-//! 2. At every level: DCA over the image features ([`crate::dca`]) → lightweight MLP `M` → class logits
+//! 2. At every level: DCA over the image features ([`crate::sparseocc_pp::dca`]) → lightweight MLP `M` → class logits
 //!    `[N, num_classes]` (class 0 = empty). The paper supervises these with "the same occupancy loss" as
 //!    the final output (CE + Lovasz + geo/sem scal, `L_anchor`), which needs class logits; the
 //!    occupancy score used for ranking is the log-odds of "not empty",
@@ -31,11 +31,13 @@
 //! (`(idx + 0.5)/dims`), so the same physical position gets the same code at every level.
 
 use crate::batch::Batch;
-use crate::dca::ViewHits;
-use crate::dca::{project_column_bases, project_queries, DcaConfig, DeformableCrossAttention};
-use crate::depth_gate::DepthMap;
-use crate::depth_oracle::DepthOracle;
-use crate::scan_oracle::ScanOracle;
+use crate::sparseocc_pp::dca::ViewHits;
+use crate::sparseocc_pp::dca::{
+    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention,
+};
+use crate::sparseocc_pp::extras::depth_gate::DepthMap;
+use crate::sparseocc_pp::extras::depth_oracle::DepthOracle;
+use crate::sparseocc_pp::extras::scan_oracle::ScanOracle;
 
 /// Height (metres, LiDAR frame) of the column bases of option `dca_column_base`: the centre of the
 /// lowest layer of the full-resolution grid `full` (the synthetic ground; 0.37 m under SemanticKITTI's
@@ -44,8 +46,8 @@ pub(crate) fn column_floor_z_m(full: &occ_geometry::VoxelGrid) -> f64 {
     full.origin_m[2] + 0.5 * full.voxel_size_m
 }
 
-/// The gate of every hit: the learned depth map's ([`crate::depth_gate`]), the diagnostic oracle's
-/// ([`crate::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
+/// The gate of every hit: the learned depth map's ([`crate::sparseocc_pp::extras::depth_gate`]), the diagnostic oracle's
+/// ([`crate::sparseocc_pp::extras::depth_oracle`]) for voxels of `voxel_m`, their product when both are on, or `None`.
 pub(crate) fn combined_gate<B: Backend>(
     depth: Option<&DepthMap<B>>,
     oracle: Option<&DepthOracle>,
@@ -160,7 +162,7 @@ pub struct AnchorStage<B: Backend> {
     /// Occupancy / class MLP.
     pub score: ScoreHead<B>,
     /// Not in the paper (`dca_column_base`): a second DCA block whose reference points are the
-    /// projections of the candidates' column bases ([`crate::dca::project_column_bases`]).
+    /// projections of the candidates' column bases ([`crate::sparseocc_pp::dca::project_column_bases`]).
     pub base_dca: Option<DeformableCrossAttention<B>>,
 }
 
@@ -245,10 +247,10 @@ pub struct AnchorGeneratorConfig {
     #[config(default = "vec![1.0, 0.2, 0.1]")]
     pub keep_ratios: Vec<f64>,
     /// Not in the paper: follow every stage's DCA by a second DCA block sampling at the projection of
-    /// each candidate's column base (see [`crate::dca::project_column_bases`]).
+    /// each candidate's column base (see [`crate::sparseocc_pp::dca::project_column_bases`]).
     #[config(default = false)]
     pub column_base: bool,
-    /// DIAGNOSTIC ([`crate::scan_oracle`]): add a learned embedding of the candidates' scan evidence
+    /// DIAGNOSTIC ([`crate::sparseocc_pp::extras::scan_oracle`]): add a learned embedding of the candidates' scan evidence
     /// to their queries.
     #[config(default = false)]
     pub scan_oracle: bool,
@@ -438,7 +440,7 @@ impl<B: Backend> AnchorGenerator<B> {
     }
 
     /// Generates the anchors. `depth`: the depth map that gates every DCA stage
-    /// ([`crate::depth_gate`]), or `None` (the paper's DCA).
+    /// ([`crate::sparseocc_pp::extras::depth_gate`]), or `None` (the paper's DCA).
     ///
     /// # Shapes
     /// - `images[l]`: `[B·V, C, h_l, w_l]`, `strides[l]` input pixels per feature pixel

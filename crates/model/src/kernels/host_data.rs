@@ -1,5 +1,5 @@
 //! Zero-copy access to tensors of the CPU inference backend (burn-ndarray without autodiff) for the
-//! fused host kernels ([`crate::conv2d_host`], the DCA host loop in [`crate::dca`]).
+//! fused host kernels ([`crate::kernels::conv2d_host`], the DCA host loop in [`crate::sparseocc_pp::dca`]).
 //!
 //! `Tensor::into_data` iterates element by element when the array is shared (a parameter, a tensor
 //! also kept for a residual connection): about 35 ns per value, more than the GEMM it feeds. The host
@@ -83,7 +83,7 @@ pub(crate) fn read<B: Backend, const D: usize, T: Elem>(t: &Tensor<B, D>) -> Opt
 }
 
 /// Whether `B` is the CPU training backend `Autodiff<NdArray<f32 | f64>>` (the host autodiff ops of
-/// [`crate::dca_host`] and [`crate::conv2d_host`] then replace burn's generic kernels).
+/// [`crate::kernels::dca_host`] and [`crate::kernels::conv2d_host`] then replace burn's generic kernels).
 pub(crate) fn is_host_autodiff<B: Backend>() -> bool {
     use burn::backend::{Autodiff, NdArray};
     use std::any::TypeId;

@@ -9,11 +9,11 @@
 //! dense in the image). The gate of a (voxel, view) hit with voxel centre depth `d`, voxel size `s`
 //! and surface depth `d_s` is `clamp(1.75 - |d - d_s| / s, 0, 1)`: 1 when the surface is within
 //! 3/4 of a voxel of its centre, 0 one voxel further away; 1 where no point is near (no evidence).
-//! DCA multiplies each hit's sampled features by it, like the learned [`crate::depth_gate`].
+//! DCA multiplies each hit's sampled features by it, like the learned [`crate::sparseocc_pp::extras::depth_gate`].
 
 use crate::batch::Batch;
-use crate::dca::ViewHits;
 use crate::error::ModelError;
+use crate::sparseocc_pp::dca::ViewHits;
 use burn::prelude::*;
 use burn::tensor::TensorData;
 
