@@ -258,7 +258,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     }
 
     // A whole SparseOcc++ forward pass on the backend.
-    let cfg = occ_train::RunConfig::from_toml(crate::cmd_demo::SYNTHETIC_TINY, "synthetic_tiny")?;
+    let cfg = occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
     let model = cfg.model.init::<Infer>(&dev)?;
     let grid = occ_data::synthetic::Preset::KittiSmall.grid();
     let batch = occ_model::Batch::<Infer> {

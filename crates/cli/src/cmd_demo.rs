@@ -7,10 +7,10 @@
 //! The per-voxel prior (most frequent training label of each voxel) is scored beside it as the
 //! baseline a learned model must beat.
 
-use crate::cmd_train::run_with;
-use crate::cmd_viz::render_panels;
 use crate::labels_io::read_label_grid;
+use crate::panels::render_panels;
 use crate::progress;
+use crate::runs::{run_with, validate_with_bars};
 use crate::util::ModelArg;
 use anyhow::{Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};
@@ -20,12 +20,10 @@ use occ_eval::{
     score_semantic_kitti_folder, semantic_kitti_recall_by_visibility, EvalReport, FolderOptions,
     VisibilityRecall, SEMANTIC_KITTI_GROUND_CLASSES,
 };
+use occ_train::config::SYNTHETIC_TINY;
 use occ_train::RunConfig;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-/// The demo's built-in configuration (`configs/synthetic_tiny.toml`).
-pub const SYNTHETIC_TINY: &str = include_str!("../../../configs/synthetic_tiny.toml");
 
 /// Arguments of `sparseocc demo`.
 #[derive(clap::Args, Debug)]
@@ -197,7 +195,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
 
     eprintln!("[4/5] predicting and scoring the held-out sequence");
     let pred_root = args.out.join("predictions");
-    let (report, spf) = crate::cmd_train::validate_on(&outcome.model, &cfg, &data, &pred_root)?;
+    let v = validate_with_bars(&outcome.model, &cfg, &data, &pred_root)?;
+    let (report, spf) = (v.report, v.seconds_per_frame);
     crate::curves::write_curves(&run_dir, Some((report.iou, report.miou)))?;
 
     eprintln!("[5/5] rendering");

@@ -7,8 +7,8 @@
 //! - `--config C --random-weights`: an untrained network (timing, smoke tests on real frames).
 
 use crate::backend::{self, Infer};
-use crate::cmd_viz::render_panel_set;
 use crate::labels_io::{read_kitti_label, read_surround_labels, LabelGrid};
+use crate::panels::render_panel_set;
 use crate::progress;
 use anyhow::{bail, Context, Result};
 use occ_data::formats::semantic_kitti::{self as sk, KittiPaths};

@@ -15,7 +15,9 @@ mod cmd_train;
 mod cmd_viz;
 mod curves;
 mod labels_io;
+mod panels;
 mod progress;
+mod runs;
 mod util;
 
 use clap::{Parser, Subcommand};

@@ -1,6 +1,9 @@
 //! Run configuration files (`configs/*.toml`): `[model]` ([`OccNetConfig`]), `[train]`
 //! ([`TrainConfig`]) and `[data]` ([`DataConfig`]).
 
+/// The demo's built-in run configuration (`configs/synthetic_tiny.toml`, built into the binary).
+pub const SYNTHETIC_TINY: &str = include_str!("../../../configs/synthetic_tiny.toml");
+
 use crate::dataset::DatasetFormat;
 use crate::trainer::TrainConfig;
 use crate::TrainError;
