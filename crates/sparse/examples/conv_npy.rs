@@ -7,21 +7,13 @@
 //! ```
 //! coords int32 [N,4] (b,x,y,z); feats float32 [N,Cin]; weight float32 [Cout,kx,ky,kz,Cin]. Outputs are sorted
 //! by (b,x,y,z). `ms_kernel_map` is the time to build the map (and output sites) on a fresh coordinate set;
-//! `ms_compute_median` the median over R runs of the feature compute with that map. File I/O is excluded.
+//! `ms_compute_median` the median over R runs of the feature compute. File I/O is excluded. Inputs may be
+//! C- or Fortran-order (`occ_sparse::arrays::conv3d_arrays` does the work; the Python package calls the same).
 //! Optional: `--dilation d`, `--transposed`, `--batch-size B` (default: max batch index + 1).
 
-use burn::backend::NdArray;
-use burn::prelude::*;
-use burn::tensor::TensorData;
-use npyz::WriterBuilder;
-use occ_sparse::backend::sparse_conv;
-use occ_sparse::kernel_map::{conv_map, MapKind};
-use occ_sparse::{ConvGeometry, CoordSet, SparseTensor};
+use occ_data::formats::npy::{read_npy, write_npy, NpyValues};
+use occ_sparse::arrays::{conv3d_arrays, ArrayConvKind, ArrayConvSpec};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::time::Instant;
-
-type B = NdArray<f32>;
 
 fn triple(s: &str, what: &str) -> Result<[usize; 3], String> {
     let v: Vec<usize> = s
@@ -41,38 +33,17 @@ fn triple(s: &str, what: &str) -> Result<[usize; 3], String> {
     }
 }
 
-fn read_npy<T: npyz::Deserialize>(path: &PathBuf) -> Result<(Vec<T>, Vec<usize>), String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| format!("{}: {e}", path.display()))?;
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
-    if npy.order() == npyz::Order::Fortran {
-        return Err(format!(
-            "{}: Fortran-order array; save it C-contiguous (numpy.ascontiguousarray)",
-            path.display()
-        ));
-    }
-    let v = npy
-        .into_vec::<T>()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    Ok((v, shape))
-}
-
-fn write_npy<T: npyz::Serialize + npyz::AutoSerialize + Copy>(
+/// Reads an `.npy` array (C or Fortran order) of the expected dtype.
+fn read_as<T>(
     path: &Path,
-    data: &[T],
-    shape: &[u64],
-) -> Result<(), String> {
-    // The project's atomic writer: a fresh temporary name beside `path`, renamed when complete.
-    occ_data::formats::io::write_atomic_io(path, |f| {
-        let mut w = npyz::WriteOptions::<T>::new()
-            .default_dtype()
-            .shape(shape)
-            .writer(std::io::BufWriter::new(f))
-            .begin_nd()?;
-        w.extend(data.iter().copied())?;
-        w.finish()
-    })
-    .map_err(|e| format!("{}: {e}", path.display()))
+    pick: impl Fn(NpyValues) -> Option<Vec<T>>,
+    dtype: &str,
+) -> Result<(Vec<T>, Vec<usize>), String> {
+    let a = read_npy(path).map_err(|e| e.to_string())?;
+    let name = a.values.dtype_name();
+    let v = pick(a.values)
+        .ok_or_else(|| format!("{}: dtype {name}, expected {dtype}", path.display()))?;
+    Ok((v, a.shape))
 }
 
 fn run() -> Result<(), String> {
@@ -118,9 +89,30 @@ fn run() -> Result<(), String> {
     let shape = shape.ok_or("missing --spatial-shape")?;
     let kernel = kernel.ok_or("missing --kernel")?;
 
-    let (c, cs) = read_npy::<i32>(&coords_p)?;
-    let (f, fs) = read_npy::<f32>(&feats_p)?;
-    let (w, ws) = read_npy::<f32>(&weight_p)?;
+    let (c, cs) = read_as(
+        &coords_p,
+        |v| match v {
+            NpyValues::I32(v) => Some(v),
+            _ => None,
+        },
+        "int32",
+    )?;
+    let (f, fs) = read_as(
+        &feats_p,
+        |v| match v {
+            NpyValues::F32(v) => Some(v),
+            _ => None,
+        },
+        "float32",
+    )?;
+    let (w, ws) = read_as(
+        &weight_p,
+        |v| match v {
+            NpyValues::F32(v) => Some(v),
+            _ => None,
+        },
+        "float32",
+    )?;
     if cs.len() != 2 || cs[1] != 4 {
         return Err(format!(
             "{}: coords must be int32 [N,4], got {cs:?}",
@@ -145,67 +137,40 @@ fn run() -> Result<(), String> {
         ));
     }
     let coords: Vec<[i32; 4]> = c.chunks(4).map(|r| [r[0], r[1], r[2], r[3]]).collect();
-    let batch = batch.unwrap_or_else(|| {
-        coords
-            .iter()
-            .map(|c| c[0].max(0) as usize + 1)
-            .max()
-            .unwrap_or(1)
-    });
-    let dev = Default::default();
-    let feats = Tensor::<B, 2>::from_data(TensorData::new(f, [fs[0], fs[1]]), &dev);
-    let (cout, kv, cin) = (ws[0], kernel.iter().product::<usize>(), ws[4]);
-    let weight = Tensor::<B, 3>::from_data(TensorData::new(w, [cout, kv, cin]), &dev);
-    let geom = ConvGeometry::new(kernel)
-        .with_stride(stride)
-        .with_padding(padding)
-        .with_dilation(dilation);
-    let kind = if subm {
-        MapKind::Submanifold
-    } else if transposed {
-        MapKind::Transposed {
-            output_padding: [0; 3],
-        }
-    } else {
-        MapKind::Regular
+    let spec = ArrayConvSpec {
+        spatial_shape: shape,
+        kernel,
+        stride,
+        padding,
+        dilation,
+        kind: if subm {
+            ArrayConvKind::Submanifold
+        } else if transposed {
+            ArrayConvKind::Transposed
+        } else {
+            ArrayConvKind::Regular
+        },
+        batch_size: batch,
     };
-
-    // Kernel map on a fresh set (nothing cached).
-    let set = Arc::new(
-        CoordSet::new(coords, shape, batch).map_err(|e| format!("{}: {e}", coords_p.display()))?,
-    );
-    let t0 = Instant::now();
-    let (out_set, map) = conv_map(&set, kind, geom).map_err(|e| e.to_string())?;
-    let ms_map = t0.elapsed().as_secs_f64() * 1e3;
-
+    // Each repeat builds the kernel map on a fresh coordinate set (nothing cached) and computes.
     let mut times = Vec::new();
     let mut out = None;
     for _ in 0..repeat.max(1) {
-        let t0 = Instant::now();
-        let y = sparse_conv::<B>(feats.clone(), weight.clone(), map.clone(), false);
-        let y = y.into_data(); // force completion
-        times.push(t0.elapsed().as_secs_f64() * 1e3);
-        out = Some(y);
+        let o = conv3d_arrays(coords.clone(), &f, fs[1], &w, ws[0], &spec)
+            .map_err(|e| format!("{}: {e}", coords_p.display()))?;
+        times.push(o.ms_compute);
+        out = Some(o);
     }
     times.sort_by(f64::total_cmp);
     let median = times[times.len() / 2];
-    let out = Tensor::<B, 2>::from_data(out.expect("at least one run"), &dev);
-    let st = SparseTensor::from_parts(out_set, out)
-        .map_err(|e| e.to_string())?
-        .sorted();
-    let oc: Vec<i32> = st.coords().iter().flat_map(|c| c.iter().copied()).collect();
-    write_npy(&oc_p, &oc, &[st.num_active() as u64, 4])?;
-    write_npy(
-        &of_p,
-        &st.feats_to_vec(),
-        &[st.num_active() as u64, cout as u64],
-    )?;
+    let out = out.expect("at least one run");
+    let oc: Vec<i32> = out.coords.iter().flat_map(|c| c.iter().copied()).collect();
+    let n_out = out.coords.len();
+    write_npy(&oc_p, &[n_out, 4], &oc).map_err(|e| e.to_string())?;
+    write_npy(&of_p, &[n_out, out.c_out], &out.feats).map_err(|e| e.to_string())?;
     println!(
         "{{\"n_out\":{},\"pairs\":{},\"ms_kernel_map\":{:.3},\"ms_compute_median\":{:.3}}}",
-        st.num_active(),
-        map.num_pairs(),
-        ms_map,
-        median
+        n_out, out.pairs, out.ms_kernel_map, median
     );
     Ok(())
 }

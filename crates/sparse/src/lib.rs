@@ -9,6 +9,7 @@
 //! [`coords`] and [`kernel_map`], feature compute in [`backend`] (portable burn ops, a fast blocked-GEMM
 //! host path for `NdArray`, explicit backward under `Autodiff`). This crate knows nothing about occupancy.
 
+pub mod arrays;
 pub mod backend;
 pub mod conv;
 pub mod coords;

@@ -1,0 +1,157 @@
+//! One sparse convolution on plain arrays, in spconv's index layout: for callers outside burn (the
+//! Python package's `sparseocc.sparse.conv3d`, the `conv_npy` example).
+//!
+//! The input is validated as [`CoordSet::new`] validates it (every site inside the batch and spatial
+//! shape, no duplicates); the kernel map is built on a fresh coordinate set and the features are
+//! computed on the CPU backend (`NdArray<f32>`, the fast host path of [`crate::backend`]).
+
+use crate::backend::sparse_conv;
+use crate::kernel_map::{conv_map, ConvGeometry, MapKind};
+use crate::{Coord, CoordSet, Result, SparseError, SparseTensor};
+use burn::backend::NdArray;
+use burn::prelude::*;
+use burn::tensor::TensorData;
+use std::sync::Arc;
+use std::time::Instant;
+
+type Cpu = NdArray<f32>;
+
+/// Which convolution [`conv3d_arrays`] runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ArrayConvKind {
+    /// Submanifold (spconv `SubMConv3d`): the output sites are the input sites.
+    Submanifold,
+    /// Regular (spconv `SparseConv3d`): every site a kernel offset reaches.
+    Regular,
+    /// Transposed (spconv `SparseConvTranspose3d`).
+    Transposed,
+}
+
+/// The geometry of one [`conv3d_arrays`] call.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ArrayConvSpec {
+    /// Spatial shape `(X, Y, Z)` of the input grid.
+    pub spatial_shape: [usize; 3],
+    /// Kernel size per axis.
+    pub kernel: [usize; 3],
+    /// Stride per axis.
+    pub stride: [usize; 3],
+    /// Padding per axis.
+    pub padding: [usize; 3],
+    /// Dilation per axis.
+    pub dilation: [usize; 3],
+    /// Submanifold, regular or transposed.
+    pub kind: ArrayConvKind,
+    /// Batch size; `None` = the largest batch index + 1.
+    pub batch_size: Option<usize>,
+}
+
+/// The result of [`conv3d_arrays`].
+#[derive(Clone, Debug)]
+pub struct ArrayConvOutput {
+    /// Output sites `(batch, x, y, z)`, sorted.
+    pub coords: Vec<Coord>,
+    /// Output features, row-major `[coords.len(), c_out]`.
+    pub feats: Vec<f32>,
+    /// Output channels.
+    pub c_out: usize,
+    /// Spatial shape of the output grid.
+    pub out_spatial_shape: [usize; 3],
+    /// (input, output) pairs of the kernel map over all offsets.
+    pub pairs: usize,
+    /// Milliseconds to build the kernel map and output sites.
+    pub ms_kernel_map: f64,
+    /// Milliseconds of the feature compute.
+    pub ms_compute: f64,
+}
+
+/// Sparse convolution of `feats` (row-major `[N, c_in]`) at `coords` with `weight` (row-major
+/// `[c_out, kx, ky, kz, c_in]`, spconv 2.x's layout; cross-correlation, no bias).
+///
+/// # Shapes
+/// - `coords`: `[N]` sites `(batch, x, y, z)`, any order, no duplicates
+/// - `feats`: `N * c_in` values
+/// - `weight`: `c_out * kx * ky * kz * c_in` values
+/// - output: `[M]` sorted sites and `M * c_out` features
+///
+/// Errors name the offending argument: a site outside the grid or the batch, a duplicate site, a
+/// length that does not fit the shapes, an invalid geometry (e.g. an even submanifold kernel).
+pub fn conv3d_arrays(
+    coords: Vec<Coord>,
+    feats: &[f32],
+    c_in: usize,
+    weight: &[f32],
+    c_out: usize,
+    spec: &ArrayConvSpec,
+) -> Result<ArrayConvOutput> {
+    let n = coords.len();
+    if c_in == 0 || c_out == 0 {
+        return Err(SparseError::Shape(format!(
+            "channels must be positive (c_in {c_in}, c_out {c_out})"
+        )));
+    }
+    if feats.len() != n * c_in {
+        return Err(SparseError::Shape(format!(
+            "feats has {} values, {n} sites x {c_in} channels need {}",
+            feats.len(),
+            n * c_in
+        )));
+    }
+    let kv: usize = spec.kernel.iter().product();
+    if kv == 0 {
+        return Err(SparseError::Config(format!(
+            "kernel {:?} has a zero extent",
+            spec.kernel
+        )));
+    }
+    if weight.len() != c_out * kv * c_in {
+        return Err(SparseError::WeightLayout {
+            cout: c_out,
+            kernel: spec.kernel,
+            cin: c_in,
+            got: vec![weight.len()],
+        });
+    }
+    let batch = spec.batch_size.unwrap_or_else(|| {
+        coords
+            .iter()
+            .map(|c| c[0].max(0) as usize + 1)
+            .max()
+            .unwrap_or(1)
+    });
+    let geom = ConvGeometry::new(spec.kernel)
+        .with_stride(spec.stride)
+        .with_padding(spec.padding)
+        .with_dilation(spec.dilation);
+    let kind = match spec.kind {
+        ArrayConvKind::Submanifold => MapKind::Submanifold,
+        ArrayConvKind::Regular => MapKind::Regular,
+        ArrayConvKind::Transposed => MapKind::Transposed {
+            output_padding: [0; 3],
+        },
+    };
+    let set = Arc::new(CoordSet::new(coords, spec.spatial_shape, batch)?);
+    let t0 = Instant::now();
+    let (out_set, map) = conv_map(&set, kind, geom)?;
+    let ms_kernel_map = t0.elapsed().as_secs_f64() * 1e3;
+
+    let dev = Default::default();
+    let x = Tensor::<Cpu, 2>::from_data(TensorData::new(feats.to_vec(), [n, c_in]), &dev);
+    let w = Tensor::<Cpu, 3>::from_data(TensorData::new(weight.to_vec(), [c_out, kv, c_in]), &dev);
+    let t0 = Instant::now();
+    let y = sparse_conv::<Cpu>(x, w, map.clone(), false);
+    let y = y.into_data(); // forces completion
+    let ms_compute = t0.elapsed().as_secs_f64() * 1e3;
+    let out_spatial_shape = out_set.spatial_shape();
+    let y = Tensor::<Cpu, 2>::from_data(y, &dev);
+    let st = SparseTensor::from_parts(out_set, y)?.sorted();
+    Ok(ArrayConvOutput {
+        coords: st.coords().to_vec(),
+        feats: st.feats_to_vec(),
+        c_out,
+        out_spatial_shape,
+        pairs: map.num_pairs(),
+        ms_kernel_map,
+        ms_compute,
+    })
+}
