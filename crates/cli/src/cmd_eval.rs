@@ -2,10 +2,7 @@
 
 use crate::progress;
 use anyhow::{Context, Result};
-use occ_eval::{
-    format_table, score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
-    FolderOptions,
-};
+use occ_eval::{format_table, score_folder, FolderOptions, Protocol};
 use std::path::PathBuf;
 
 /// Arguments of `sparseocc eval`.
@@ -43,17 +40,11 @@ pub fn run(args: &EvalArgs) -> Result<occ_eval::EvalReport> {
         on_frame: Some(&tick),
         ..Default::default()
     };
-    let report = match args.dataset.as_str() {
-        "semantickitti" | "kitti" => score_semantic_kitti_folder(&args.gt, &args.pred, &opts),
-        "occ3d" => score_occ3d_folder(&args.gt, &args.pred, &opts),
-        "nuscenes-occupancy" | "nuscenes" => {
-            score_nuscenes_occupancy_folder(&args.gt, &args.pred, &opts)
-        }
-        other => anyhow::bail!(
-            "eval: unknown dataset '{other}' (semantickitti, occ3d, nuscenes-occupancy)"
-        ),
-    }
-    .with_context(|| {
+    let protocol: Protocol = args
+        .dataset
+        .parse()
+        .map_err(|e| anyhow::anyhow!("eval: {e}"))?;
+    let report = score_folder(protocol, &args.gt, &args.pred, &opts).with_context(|| {
         format!(
             "scoring {} against {}",
             args.pred.display(),

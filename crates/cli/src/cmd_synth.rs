@@ -26,15 +26,6 @@ pub struct SynthArgs {
     pub image_size: Option<String>,
 }
 
-pub fn parse_preset(s: &str) -> Result<Preset> {
-    Ok(match s {
-        "kitti" => Preset::Kitti,
-        "kitti-small" => Preset::KittiSmall,
-        "surround" => Preset::Surround,
-        other => anyhow::bail!("unknown preset '{other}' (kitti, kitti-small, surround)"),
-    })
-}
-
 pub fn parse_size(s: &str) -> Result<(usize, usize)> {
     let (w, h) = s
         .split_once(['x', 'X'])
@@ -47,7 +38,7 @@ pub fn parse_size(s: &str) -> Result<(usize, usize)> {
 
 pub fn run(args: &SynthArgs) -> Result<()> {
     let mut cfg = SynthConfig::new(
-        parse_preset(&args.preset)?,
+        args.preset.parse::<Preset>()?,
         args.seed,
         synthetic::parse_sequences(&args.sequences)?,
     );
@@ -67,6 +58,6 @@ pub fn run(args: &SynthArgs) -> Result<()> {
         summary.seconds,
         summary.frames_per_second
     );
-    crate::util::write_json(&args.out.join("synth_summary.json"), &summary)?;
+    synthetic::write_summary(&args.out, &summary)?;
     Ok(())
 }

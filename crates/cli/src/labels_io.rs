@@ -1,7 +1,8 @@
 //! Reading label grids of every supported kind, with the grid they live on.
 
-use anyhow::{bail, Context, Result};
-use occ_data::formats::{occ3d, semantic_kitti as sk};
+use anyhow::{bail, Result};
+use occ_data::formats::semantic_kitti as sk;
+use occ_data::formats::voxels::{self, VoxelFile};
 use occ_data::labels::LearningMap;
 use occ_geometry::VoxelGrid;
 use occ_train::dataset::DatasetFormat;
@@ -22,30 +23,6 @@ pub struct LabelGrid {
     /// occupancy (.bin)" for SemanticKITTI's voxelised scan, the mask name for `.invalid` /
     /// `.occluded`.
     pub title: &'static str,
-}
-
-/// The SemanticKITTI-volume grid for `n` voxels: full (256x256x32) or a 2x/4x downsampled one; a
-/// `synthetic.json` found in an ancestor folder wins.
-fn kitti_grid_for(path: &Path, n: usize) -> Result<VoxelGrid> {
-    let mut dir = path.parent();
-    while let Some(d) = dir {
-        if let Ok(Some(meta)) = occ_data::synthetic::read_synthetic_meta(d) {
-            if meta.grid.num_voxels() == n {
-                return Ok(meta.grid);
-            }
-        }
-        dir = d.parent();
-    }
-    for f in [1, 2, 4] {
-        let g = VoxelGrid::semantic_kitti().downsampled(f);
-        if g.num_voxels() == n {
-            return Ok(g);
-        }
-    }
-    bail!(
-        "{}: {n} voxels matches no SemanticKITTI grid (256x256x32 or /2, /4) and no synthetic.json above it",
-        path.display()
-    )
 }
 
 /// Reads a SemanticKITTI `.label` file (raw ids, any grid) on a known grid as learning classes.
@@ -105,15 +82,16 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
         .extension()
         .and_then(|e| e.to_str())
         .unwrap_or_default();
-    let len = std::fs::metadata(path)
-        .with_context(|| format!("{}: cannot read", path.display()))?
-        .len() as usize;
     match ext {
-        "label" => read_kitti_label(path, kitti_grid_for(path, len / 2)?),
-        "bin" | "invalid" | "occluded" => {
-            let grid = kitti_grid_for(path, len * 8)?;
-            let bits = sk::read_packed_bits(path, grid.num_voxels())?;
-            Ok(LabelGrid {
+        "label" | "bin" | "invalid" | "occluded" | "npz" => Ok(match voxels::read_voxels(path)? {
+            VoxelFile::KittiLabel { raw, grid } => LabelGrid {
+                classes: LearningMap::semantic_kitti().remap(&raw),
+                grid,
+                palette: Palette::SemanticKitti,
+                occupancy_only: false,
+                title: "ground truth",
+            },
+            VoxelFile::KittiBits { bits, grid } => LabelGrid {
                 classes: bits,
                 grid,
                 palette: Palette::SemanticKitti,
@@ -123,8 +101,15 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
                     "invalid" => "invalid voxels (.invalid)",
                     _ => "occluded voxels (.occluded)",
                 },
-            })
-        }
+            },
+            VoxelFile::Occ3d(l) => LabelGrid {
+                classes: l.semantics,
+                grid: VoxelGrid::occ3d_nuscenes(),
+                palette: Palette::Occ3d,
+                occupancy_only: false,
+                title: "ground truth",
+            },
+        }),
         "npy" => {
             let (classes, dims) = sk::read_label_npy(path)?;
             let f = 256 / dims[0].max(1);
@@ -138,16 +123,6 @@ pub fn read_label_grid(path: &Path) -> Result<LabelGrid> {
                 classes,
                 grid,
                 palette: Palette::SemanticKitti,
-                occupancy_only: false,
-                title: "ground truth",
-            })
-        }
-        "npz" => {
-            let l = occ3d::read_labels_npz(path)?;
-            Ok(LabelGrid {
-                classes: l.semantics,
-                grid: VoxelGrid::occ3d_nuscenes(),
-                palette: Palette::Occ3d,
                 occupancy_only: false,
                 title: "ground truth",
             })

@@ -188,6 +188,21 @@ fn run_jobs(
     Ok(ev.report())
 }
 
+/// Score a prediction folder against a ground-truth folder with `protocol`'s layout and rules (what
+/// `sparseocc eval` and the Python package's `evaluate` run).
+pub fn score_folder(
+    protocol: Protocol,
+    gt_root: &Path,
+    pred_root: &Path,
+    opts: &FolderOptions<'_>,
+) -> Result<EvalReport, EvalError> {
+    match protocol {
+        Protocol::SemanticKitti => score_semantic_kitti_folder(gt_root, pred_root, opts),
+        Protocol::Occ3d => score_occ3d_folder(gt_root, pred_root, opts),
+        Protocol::NuScenesOccupancy => score_nuscenes_occupancy_folder(gt_root, pred_root, opts),
+    }
+}
+
 /// Score SemanticKITTI submission folders (see the module docs for layout and rules).
 pub fn score_semantic_kitti_folder(
     gt_root: &Path,

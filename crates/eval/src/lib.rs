@@ -20,7 +20,7 @@ pub mod visibility;
 pub use confusion::ConfusionMatrix;
 pub use error::EvalError;
 pub use folder::{
-    score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
+    score_folder, score_nuscenes_occupancy_folder, score_occ3d_folder, score_semantic_kitti_folder,
     FolderOptions, Occ3dMask,
 };
 pub use protocol::{EvalMask, Evaluator, Protocol, SEMANTIC_KITTI_GROUND_CLASSES};

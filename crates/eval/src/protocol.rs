@@ -208,6 +208,30 @@ impl Evaluator {
         })
     }
 
+    /// An accumulator holding `conf` (`conf[pred][gt]`, e.g. the sum of several frames' matrices)
+    /// over `frames` frames. Predictions that were not class indices are already in `conf` as the
+    /// empty class, so the count of invalid predictions is 0.
+    pub fn from_confusion(
+        protocol: Protocol,
+        conf: ConfusionMatrix,
+        frames: u64,
+    ) -> Result<Self, EvalError> {
+        if conf.num_classes() != protocol.num_classes() {
+            return Err(EvalError::Incompatible(format!(
+                "confusion matrix is {n}x{n} but {} has {} classes",
+                protocol.name(),
+                protocol.num_classes(),
+                n = conf.num_classes()
+            )));
+        }
+        Ok(Self {
+            protocol,
+            conf,
+            frames,
+            invalid_predictions: 0,
+        })
+    }
+
     /// The protocol.
     pub fn protocol(&self) -> Protocol {
         self.protocol

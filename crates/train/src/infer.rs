@@ -8,7 +8,7 @@ use crate::dataset::{
 use crate::mirror::mirror_sample_y;
 use crate::TrainError;
 use occ_data::formats::semantic_kitti as sk;
-use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineConfig};
+use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineConfig, RgbImage};
 use occ_geometry::VoxelGrid;
 use occ_model::OccNet;
 use occ_sparse::SparseConvBackend;
@@ -169,7 +169,7 @@ pub fn predict_dataset<B: SparseConvBackend>(
 }
 
 /// Loads one camera image (PNG or JPEG) with its KITTI-format calibration (`P2`, `Tr`) as a
-/// test-time sample.
+/// test-time sample ([`sample_from_image`]).
 ///
 /// The image may have any size; it goes through the test-time pipeline (resize to the network
 /// width, bottom crop), and the calibration is adjusted accordingly. An image whose size does not
@@ -184,17 +184,37 @@ pub fn load_single_image(
     let (w, h) = read_image_size(image)?;
     check_image_fits_calibration(image, w, h, calib, &cal)?;
     let img = read_image(image)?;
-    let aug = pipeline.test_aug(img.width, img.height);
-    let processed = process_image(&img, &aug)?;
-    let view = cal.camera_view(img.width, img.height).augmented(&aug);
     let stem = image
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "image".into());
+    sample_from_image(&img, &cal, pipeline, &stem)
+}
+
+/// A decoded camera image with its calibration as a test-time sample named `name`: the image goes
+/// through the test-time pipeline (resize to the network width, bottom crop), and the calibration
+/// is adjusted accordingly. An image whose size does not fit the calibration (principal point
+/// outside the central half of the image) is an error naming `name`.
+pub fn sample_from_image(
+    img: &RgbImage,
+    cal: &sk::Calib,
+    pipeline: &ImagePipelineConfig,
+    name: &str,
+) -> Result<Sample, TrainError> {
+    check_image_fits_calibration(
+        Path::new(name),
+        img.width,
+        img.height,
+        Path::new("(the calibration given)"),
+        cal,
+    )?;
+    let aug = pipeline.test_aug(img.width, img.height);
+    let processed = process_image(img, &aug)?;
+    let view = cal.camera_view(img.width, img.height).augmented(&aug);
     Ok(Sample {
         frame: FrameRef {
             sequence: String::new(),
-            frame: stem,
+            frame: name.to_string(),
         },
         chw: processed.chw,
         size: (processed.width, processed.height),
@@ -202,6 +222,48 @@ pub fn load_single_image(
         target: None,
         points: None,
     })
+}
+
+/// Predicts one frame of a dataset: `sequence` (a nuScenes-layout scene name) and `frame` (its
+/// frame stem, or sample token) below `root`, in the layout `data.format`, with the LiDAR points
+/// loaded when the model needs them at test time. The dataset's grid must be the model's.
+#[allow(clippy::too_many_arguments)]
+pub fn predict_dataset_frame<B: SparseConvBackend>(
+    model: &OccNet<B>,
+    data: &crate::config::DataConfig,
+    needs_points: bool,
+    root: &Path,
+    sequence: &str,
+    frame: &str,
+    grid: VoxelGrid,
+    device: &B::Device,
+    test_mirror: bool,
+) -> Result<Prediction, TrainError> {
+    let mut ds = Dataset::open(root, data, &[sequence.to_string()], &[])?;
+    ds.set_load_points(needs_points);
+    if ds.grid().dims != grid.dims {
+        return Err(TrainError::Data(format!(
+            "{}: dataset grid {:?} but the model predicts {:?}",
+            root.display(),
+            ds.grid().dims,
+            grid.dims
+        )));
+    }
+    let Some(i) = ds.frames().iter().position(|f| f.frame == frame) else {
+        let first: Vec<&str> = ds
+            .frames()
+            .iter()
+            .take(3)
+            .map(|f| f.frame.as_str())
+            .collect();
+        return Err(TrainError::Data(format!(
+            "{}: sequence {sequence} has no frame {frame} ({} frames, e.g. {first:?})",
+            root.display(),
+            ds.len()
+        )));
+    };
+    let sample = ds.load::<rand_chacha::ChaCha8Rng>(i, None)?;
+    predict_sample(model, &sample, grid, device, test_mirror)
 }
 
 #[cfg(test)]

@@ -6,3 +6,4 @@ pub mod npy;
 pub mod nuscenes_occupancy;
 pub mod occ3d;
 pub mod semantic_kitti;
+pub mod voxels;

@@ -181,8 +181,32 @@ pub fn labels_npz_bytes(l: &Occ3dLabels) -> Result<Vec<u8>, DataError> {
     Ok(zw.finish().map_err(zerr)?.into_inner())
 }
 
-/// Write an Occ3D `labels.npz` (DEFLATE), atomically.
+/// Write an Occ3D `labels.npz` (DEFLATE), atomically. Classes above 17 and mask values other
+/// than 0/1 are refused, as the reader refuses them.
 pub fn write_labels_npz(path: &Path, l: &Occ3dLabels) -> Result<(), DataError> {
+    // What the reader rejects is not written ([`labels_npz_bytes`] serialises anything, for tests).
+    if let Some((i, &v)) = l
+        .semantics
+        .iter()
+        .enumerate()
+        .find(|(_, &v)| v as usize >= NUM_CLASSES)
+    {
+        return Err(DataError::InvalidArgument(format!(
+            "{}: Occ3D semantics value {v} at flat index {i} is not a class (0..=17)",
+            path.display()
+        )));
+    }
+    for (name, m) in [
+        ("mask_lidar", &l.mask_lidar),
+        ("mask_camera", &l.mask_camera),
+    ] {
+        if let Some((i, &v)) = m.iter().enumerate().find(|(_, &v)| v > 1) {
+            return Err(DataError::InvalidArgument(format!(
+                "{}: Occ3D {name} value {v} at flat index {i} is not 0/1",
+                path.display()
+            )));
+        }
+    }
     let bytes = labels_npz_bytes(l)?;
     write_atomic(path, &bytes)
 }

@@ -375,7 +375,7 @@ pub fn read_calib(path: &Path) -> Result<Calib, DataError> {
         let key = key.trim();
         match key {
             "P2" => p2 = Some(mat34(&parse_12(path, i + 1, key, rest)?)),
-            "Tr" => tr = Some(pad44(&mat34(&parse_12(path, i + 1, key, rest)?))),
+            "Tr" => tr = Some(mat34(&parse_12(path, i + 1, key, rest)?)),
             _ => {}
         }
     }
@@ -387,15 +387,26 @@ pub fn read_calib(path: &Path) -> Result<Calib, DataError> {
         path: path.to_path_buf(),
         key: "Tr".into(),
     })?;
-    let k = [
-        [p2[0][0], p2[0][1], p2[0][2]],
-        [p2[1][0], p2[1][1], p2[1][2]],
-        [p2[2][0], p2[2][1], p2[2][2]],
-    ];
-    if mat3_inverse(&k).is_none() {
-        return Err(DataError::format(path, "P2[:3,:3] is singular"));
+    Calib::from_rows(p2, tr).map_err(|detail| DataError::format(path, detail))
+}
+
+impl Calib {
+    /// A calibration from the 3x4 `P2` and `Tr` matrices (as `calib.txt` holds them): every value
+    /// finite and `P2[:3,:3]` invertible, or the problem in words.
+    pub fn from_rows(p2: [[f64; 4]; 3], tr: [[f64; 4]; 3]) -> Result<Calib, String> {
+        if p2.iter().chain(&tr).flatten().any(|v| !v.is_finite()) {
+            return Err("P2 and Tr must hold finite numbers".into());
+        }
+        let k = [
+            [p2[0][0], p2[0][1], p2[0][2]],
+            [p2[1][0], p2[1][1], p2[1][2]],
+            [p2[2][0], p2[2][1], p2[2][2]],
+        ];
+        if mat3_inverse(&k).is_none() {
+            return Err("P2[:3,:3] is singular".into());
+        }
+        Ok(Calib { p2, tr: pad44(&tr) })
     }
-    Ok(Calib { p2, tr })
 }
 
 fn fmt_row12(m: &[[f64; 4]; 3]) -> String {

@@ -400,6 +400,19 @@ pub struct SynthSummary {
     pub lidar_points_per_frame: f64,
 }
 
+/// The file [`write_summary`] writes in the dataset folder.
+pub const SUMMARY_FILE: &str = "synth_summary.json";
+
+/// Writes `summary` as pretty JSON to `out/synth_summary.json`, atomically (what `sparseocc
+/// synth` and the Python package's `synth` leave beside the data).
+pub fn write_summary(out: &Path, summary: &SynthSummary) -> Result<PathBuf, DataError> {
+    let path = out.join(SUMMARY_FILE);
+    let text = serde_json::to_string_pretty(summary)
+        .map_err(|e| DataError::InvalidArgument(format!("synth summary as JSON: {e}")))?;
+    crate::formats::io::write_atomic(&path, text.as_bytes())?;
+    Ok(path)
+}
+
 /// Counters shared by the writers.
 #[derive(Default)]
 pub(crate) struct Stats {
