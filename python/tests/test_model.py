@@ -1,0 +1,67 @@
+"""``Model``: a trained run from Python equals ``sparseocc infer`` on the same inputs."""
+
+import numpy as np
+import pytest
+
+import sparseocc
+from conftest import run
+
+
+def test_predict_equals_infer_image(tmp_path, cli, tiny_run, kitti_data):
+    seq = kitti_data / "sequences" / "08"
+    image, calib = seq / "image_2" / "000000.png", seq / "calib.txt"
+    out = tmp_path / "infer"
+    run([cli, "infer", "--checkpoint", tiny_run, "--image", image, "--calib", calib, "--out", out])
+    want = sparseocc.read_voxels(out / "000000.label", learning=True)
+
+    model = sparseocc.Model.load(tiny_run)
+    assert model.kind == "sparseocc++" and model.grid_shape == (128, 128, 16)
+    assert model.class_names[0] == "empty" and "sparseocc++" in repr(model)
+    rgb = sparseocc.read_image(image)
+    assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
+    got = model.predict(rgb, calib)
+    assert got.dtype == np.uint8 and got.shape == (128, 128, 16)
+    assert (got == want).all()
+    # The calibration as matrices, the image as a Fortran-order copy: the same prediction.
+    rows = {}
+    for line in calib.read_text().splitlines():
+        if ":" in line:
+            k, v = line.split(":", 1)
+            if k.strip() in ("P2", "Tr"):
+                rows[k.strip()] = np.array(v.split(), dtype=np.float64).reshape(3, 4)
+    assert (model.predict(np.asfortranarray(rgb), rows) == want).all()
+
+
+def test_predict_frame_equals_infer_on_the_dataset(tmp_path, cli, tiny_run, kitti_data):
+    out = tmp_path / "infer"
+    run([cli, "infer", "--checkpoint", tiny_run, "--data", kitti_data, "--sequences", "08",
+         "--out", out, "--render", "0"])
+    want = sparseocc.read_voxels(out / "sequences/08/predictions/000000.label", learning=True)
+    got = sparseocc.Model.load(tiny_run / "checkpoint").predict_frame(kitti_data, "08", "000000")
+    assert (got == want).all()
+
+
+def test_predict_on_a_real_kitti_image(tiny_run, realdata):
+    seq = realdata / "semantickitti" / "sequences" / "08"
+    model = sparseocc.Model.load(tiny_run)
+    got = model.predict(sparseocc.read_image(seq / "image_2" / "000000.png"), seq / "calib.txt")
+    assert got.shape == model.grid_shape and got.max() < 20
+
+
+def test_model_errors(tmp_path, tiny_run, kitti_data):
+    with pytest.raises(sparseocc.SparseOccError, match="not a training run"):
+        sparseocc.Model.load(tmp_path)
+    model = sparseocc.Model.load(tiny_run)
+    calib = kitti_data / "sequences" / "08" / "calib.txt"
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        model.predict(np.zeros((10, 10), dtype=np.uint8), calib)
+    with pytest.raises(sparseocc.SparseOccError, match="principal point"):
+        model.predict(np.zeros((40, 2000, 3), dtype=np.uint8), calib)
+    with pytest.raises(ValueError, match="calib"):
+        model.predict(np.zeros((185, 613, 3), dtype=np.uint8), 42)
+    with pytest.raises(ValueError, match="singular"):
+        model.predict(np.zeros((185, 613, 3), dtype=np.uint8), {"P2": np.zeros((3, 4)), "Tr": np.eye(4)[:3]})
+    with pytest.raises(sparseocc.SparseOccError, match="no frame 999999"):
+        model.predict_frame(kitti_data, "08", "999999")
+    with pytest.raises(sparseocc.SparseOccError, match="no such file|not found"):
+        sparseocc.read_image(tmp_path / "none.png")
