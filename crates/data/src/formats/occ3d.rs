@@ -181,10 +181,9 @@ pub fn labels_npz_bytes(l: &Occ3dLabels) -> Result<Vec<u8>, DataError> {
     Ok(zw.finish().map_err(zerr)?.into_inner())
 }
 
-/// Write an Occ3D `labels.npz` (DEFLATE), atomically. Classes above 17 and mask values other
-/// than 0/1 are refused, as the reader refuses them.
-pub fn write_labels_npz(path: &Path, l: &Occ3dLabels) -> Result<(), DataError> {
-    // What the reader rejects is not written ([`labels_npz_bytes`] serialises anything, for tests).
+/// The checks [`read_labels_npz`] makes of the values: classes 0..=17, masks 0/1 (`path` names
+/// the file in the error).
+pub fn check_labels(path: &Path, l: &Occ3dLabels) -> Result<(), DataError> {
     if let Some((i, &v)) = l
         .semantics
         .iter()
@@ -207,6 +206,13 @@ pub fn write_labels_npz(path: &Path, l: &Occ3dLabels) -> Result<(), DataError> {
             )));
         }
     }
+    Ok(())
+}
+
+/// Write an Occ3D `labels.npz` (DEFLATE), atomically. Any values are written (prediction files
+/// may hold invalid ids, which the scorer counts); [`check_labels`] is what [`read_labels_npz`]
+/// demands of a ground-truth file.
+pub fn write_labels_npz(path: &Path, l: &Occ3dLabels) -> Result<(), DataError> {
     let bytes = labels_npz_bytes(l)?;
     write_atomic(path, &bytes)
 }

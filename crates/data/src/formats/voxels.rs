@@ -161,7 +161,10 @@ pub fn write_voxels(path: &Path, file: &VoxelFile) -> Result<(), DataError> {
             }
             sk::write_packed_bits(path, bits)
         }
-        VoxelFile::Occ3d(l) => occ3d::write_labels_npz(path, l),
+        VoxelFile::Occ3d(l) => {
+            occ3d::check_labels(path, l)?;
+            occ3d::write_labels_npz(path, l)
+        }
     }
 }
 
