@@ -7,6 +7,10 @@
 //! (sparse voxel logits, losses, per-stage statistics) comes out; [`occnet::OccNet`] is the whole
 //! network (image encoder + one of the three models + losses) that training and inference use.
 //!
+//! Every model is generic over `B: ModelBackend`, a burn backend extension (like occ-sparse's
+//! `SparseConvBackend`, its supertrait) whose default methods run the portable burn ops and whose
+//! `NdArray` / `Autodiff<NdArray>` implementations run the CPU fast paths of [`kernels`].
+//!
 //! ## Paper section → path
 //!
 //! | paper | stage | path |
@@ -30,7 +34,7 @@
 //! | Table "all modules disabled" | dense baseline | [`dense`] |
 //! | docs/formats.md §2.6 | label downsampling, batch targets | [`targets`] |
 //! | Sec. 3.5, 4.4 | losses (CE, Lovasz, scene-class affinity, mask, depth) | [`loss`] |
-//! | — | CPU fast paths (image convs, DCA sampling) | [`kernels`] |
+//! | — | compute kernels: [`ModelBackend`] (portable burn ops; CPU fast paths for image convs and DCA sampling) | [`kernels`] |
 //! | — | per-stage timing for `sparseocc bench` | [`profile`] |
 
 pub mod batch;
@@ -51,6 +55,7 @@ pub mod targets;
 
 pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
+pub use kernels::ModelBackend;
 pub use network::OccNetwork;
 pub use occnet::{load_checked, ModelKind, OccNet, OccNetConfig};
 pub use output::ModelOutput;

@@ -33,6 +33,7 @@
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::conv2d_host::conv_bn;
+use crate::kernels::ModelBackend;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d};
 use burn::prelude::*;
@@ -173,7 +174,7 @@ pub struct LssOutput<B: Backend> {
     pub frustum: Frustum,
 }
 
-impl<B: Backend> Lss<B> {
+impl<B: ModelBackend> Lss<B> {
     /// Number of depth bins `D`.
     pub fn num_bins(&self) -> usize {
         self.num_bins

@@ -11,13 +11,13 @@ use crate::batch::Batch;
 use crate::dense::{DenseBaseline, DenseBaselineConfig};
 use crate::encoder::fpn::{ImageEncoder, ImageEncoderConfig};
 use crate::error::ModelError;
+use crate::kernels::ModelBackend;
 use crate::loss::sparseocc_class_weights;
 use crate::network::OccNetwork;
 use crate::output::ModelOutput;
 use crate::sparseocc::{SparseOcc, SparseOccConfig};
 use crate::sparseocc_pp::{SparseOccPP, SparseOccPPConfig};
 use burn::prelude::*;
-use occ_sparse::SparseConvBackend;
 use serde::{Deserialize, Serialize};
 
 /// Which occupancy model sits behind the image encoder.
@@ -202,7 +202,7 @@ impl OccNetConfig {
     }
 
     /// Builds the network.
-    pub fn init<B: SparseConvBackend>(&self, device: &B::Device) -> Result<OccNet<B>, ModelError> {
+    pub fn init<B: ModelBackend>(&self, device: &B::Device) -> Result<OccNet<B>, ModelError> {
         self.validate()?;
         let encoder = self.encoder.init(device)?;
         let (mut pp, mut so, mut dense) = (None, None, None);
@@ -244,7 +244,7 @@ pub struct OccNet<B: Backend> {
     num_classes: usize,
 }
 
-impl<B: SparseConvBackend> OccNet<B> {
+impl<B: ModelBackend> OccNet<B> {
     /// `sparseocc++`, `sparseocc` or `dense`.
     pub fn kind_name(&self) -> &str {
         &self.kind
@@ -312,7 +312,7 @@ impl<B: SparseConvBackend> OccNet<B> {
     }
 }
 
-impl<B: SparseConvBackend> OccNetwork<B> for OccNet<B> {
+impl<B: ModelBackend> OccNetwork<B> for OccNet<B> {
     fn forward_batch(&self, batch: &Batch<B>) -> Result<ModelOutput<B>, ModelError> {
         self.forward(batch)
     }

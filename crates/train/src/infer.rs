@@ -10,8 +10,8 @@ use crate::TrainError;
 use occ_data::formats::semantic_kitti as sk;
 use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineConfig, RgbImage};
 use occ_geometry::VoxelGrid;
+use occ_model::ModelBackend;
 use occ_model::OccNet;
-use occ_sparse::SparseConvBackend;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -33,7 +33,7 @@ pub struct Prediction {
 /// probabilities are mirrored back, and the class of each voxel is the argmax of the mean of the
 /// two (the test-time counterpart of the `data.mirror_prob` training augmentation; twice the forward
 /// time).
-pub fn predict_sample<B: SparseConvBackend>(
+pub fn predict_sample<B: ModelBackend>(
     model: &OccNet<B>,
     sample: &Sample,
     grid: VoxelGrid,
@@ -149,7 +149,7 @@ pub fn mean_of_mirrored_argmax(
 /// atomically), with test-time mirror averaging when `test_mirror` ([`predict_sample`]).
 /// `on_frame(done, total, &frame, &prediction)` reports progress. Returns the files
 /// written with their forward times.
-pub fn predict_dataset<B: SparseConvBackend>(
+pub fn predict_dataset<B: ModelBackend>(
     model: &OccNet<B>,
     ds: &Dataset,
     out_root: &Path,

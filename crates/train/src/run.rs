@@ -14,8 +14,8 @@ use crate::RunConfig;
 use burn::module::{AutodiffModule, Module};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use occ_eval::EvalReport;
+use occ_model::ModelBackend;
 use occ_model::OccNet;
-use occ_sparse::SparseConvBackend;
 use std::path::Path;
 
 /// What a run reports while it goes.
@@ -112,8 +112,8 @@ pub fn train_run<B>(
     progress: &mut dyn FnMut(RunProgress),
 ) -> Result<RunOutcome<B::InnerBackend>, TrainError>
 where
-    B: AutodiffBackend + SparseConvBackend,
-    B::InnerBackend: SparseConvBackend,
+    B: AutodiffBackend + ModelBackend,
+    B::InnerBackend: ModelBackend,
 {
     let RunSpec {
         cfg,
@@ -233,7 +233,7 @@ where
 
 /// Predicts `cfg.data.val_sequences` of the dataset at `data` into `pred_root` (the dataset's
 /// submission layout) and scores them with the layout's official protocol.
-pub fn validate_on<B: SparseConvBackend>(
+pub fn validate_on<B: ModelBackend>(
     model: &OccNet<B>,
     cfg: &RunConfig,
     data: &Path,

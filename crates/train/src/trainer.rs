@@ -526,7 +526,7 @@ pub fn load_weights<B: burn::tensor::backend::Backend, M: burn::module::Module<B
 /// label grid it was trained on (`grid.json`) and the model with the checkpoint's weights. Every
 /// error names the file (a missing `config.toml`, an unreadable grid, weights that do not match
 /// the configuration).
-pub fn load_run<B: occ_sparse::SparseConvBackend>(
+pub fn load_run<B: occ_model::ModelBackend>(
     path: &Path,
     device: &B::Device,
 ) -> Result<(RunConfig, VoxelGrid, occ_model::OccNet<B>), TrainError> {

@@ -14,6 +14,7 @@
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::kernels::ModelBackend;
 use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
@@ -22,9 +23,7 @@ use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use occ_sparse::norm::SparseBatchNorm;
-use occ_sparse::{
-    full_grid_coords, SparseConv3d, SparseConv3dConfig, SparseConvBackend, SparseTensor,
-};
+use occ_sparse::{full_grid_coords, SparseConv3d, SparseConv3dConfig, SparseTensor};
 
 /// Configuration of [`DenseBaseline`].
 #[derive(Config, Debug)]
@@ -142,7 +141,7 @@ pub struct DenseOutput<B: Backend> {
     pub aux: DenseAux<B>,
 }
 
-impl<B: SparseConvBackend> DenseBaseline<B> {
+impl<B: ModelBackend> DenseBaseline<B> {
     /// Runs the model.
     ///
     /// # Shapes

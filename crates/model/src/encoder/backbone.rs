@@ -25,6 +25,7 @@
 //! (call `.valid()` on an autodiff module for evaluation-mode normalisation).
 
 use crate::kernels::conv2d_host::conv_bn;
+use crate::kernels::ModelBackend;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -261,7 +262,9 @@ impl<B: Backend> ResBlock<B> {
             },
         }
     }
+}
 
+impl<B: ModelBackend> ResBlock<B> {
     /// `[N, inplanes, H, W]` → `[N, planes·expansion, H/stride, W/stride]` (ceil for odd sizes).
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let identity = match &self.downsample {
@@ -301,7 +304,7 @@ pub struct ResNet<B: Backend> {
     pub out_indices: Vec<usize>,
 }
 
-impl<B: Backend> ResNet<B> {
+impl<B: ModelBackend> ResNet<B> {
     /// `images` `[N, in_channels, H, W]` → one feature map per `out_indices` entry, stage `i` of shape
     /// `[N, C_i, ⌈H/2^(i+2)⌉, ⌈W/2^(i+2)⌉]` (exact torchvision arithmetic for odd sizes).
     pub fn forward(&self, images: Tensor<B, 4>) -> Vec<Tensor<B, 4>> {

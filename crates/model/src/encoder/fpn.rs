@@ -11,6 +11,7 @@
 //! the `ConvModule` `.conv` level).
 
 use crate::kernels::conv2d_host::conv_bn;
+use crate::kernels::ModelBackend;
 use burn::config::Config;
 use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -92,7 +93,7 @@ pub struct Fpn<B: Backend> {
     pub out_channels: usize,
 }
 
-impl<B: Backend> Fpn<B> {
+impl<B: ModelBackend> Fpn<B> {
     /// `inputs[i]` `[N, in_channels[i], H_i, W_i]` (finest first) → `[N, out_channels, H_i, W_i]` each.
     ///
     /// Errors if the number of levels, batch sizes or channels differ from the configuration.
@@ -174,7 +175,7 @@ pub struct ImageEncoder<B: Backend> {
     pub neck: Fpn<B>,
 }
 
-impl<B: Backend> ImageEncoder<B> {
+impl<B: ModelBackend> ImageEncoder<B> {
     /// `images` `[N, 3, H, W]` (N = batch × views) → one `[N, out_channels, ⌈H/s⌉, ⌈W/s⌉]` map per
     /// stride `s` in [`Self::strides`] (finest first).
     pub fn forward(&self, images: Tensor<B, 4>) -> Vec<Tensor<B, 4>> {

@@ -5,8 +5,8 @@
 //! setting (1280x384) took 11-12 s on this project's 2-core reference machine, against 2.0 s here (the
 //! GEMM reaches 35-45 GFLOP/s). The encoder is shared by the three models, so it bounded every
 //! end-to-end ratio of the benchmark (issue 8). [`conv_bn`] keeps burn's modules and weights as
-//! they are and only changes how the forward pass is computed when the backend is burn-ndarray
-//! without autodiff (inference): the BN's `gamma / sqrt(var + eps)` is folded into the convolution
+//! they are and only changes how the forward pass is computed: it calls the backend's
+//! [`ModelBackend::conv2d_bn`], whose burn-ndarray override (inference, [`conv_bn_host`]) folds the BN's `gamma / sqrt(var + eps)` is folded into the convolution
 //! weight and its shift into the bias (the standard inference-time fusion), the input is unfolded into
 //! a `[C_in·k_h·k_w, H_out·W_out]` matrix (skipped for 1x1 stride-1 convolutions, whose input already
 //! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with `matrixmultiply` on all
@@ -15,12 +15,14 @@
 //! On the CPU training backend (`Autodiff<NdArray>`) the convolution alone (BatchNorm stays burn's,
 //! with batch statistics) is one autodiff op computed the same way, with its backward as two GEMMs
 //! and a col2im per image ([`conv_autodiff`]); with the DCA op of [`crate::kernels::dca_host`] it made the
-//! demo's training step 3.4x faster. GPU backends take burn's own `Conv2d` and `BatchNorm`.
+//! demo's training step 3.4x faster. GPU backends take the trait's portable default, burn's own
+//! `Conv2d` and `BatchNorm` ([`conv_bn_portable`]).
 
-use crate::kernels::host_data::{
-    from_ad, host_vec, is_host_autodiff, is_host_backend, is_host_f32, read, to_ad,
-    with_host_slice, Elem,
-};
+use crate::kernels::host_data::{from_ad, host_vec, read, to_ad, with_host_slice, Elem, NdElem};
+use crate::kernels::ModelBackend;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::ndarray::{NdArrayTensor, SharedArray};
+use burn::backend::{Autodiff, NdArray};
 use burn::nn::conv::Conv2d;
 use burn::nn::{BatchNorm, PaddingConfig2d};
 use burn::tensor::activation::relu;
@@ -29,39 +31,42 @@ use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
 /// `relu?(bn?(conv(x)))` — the composition of burn's `Conv2d::forward`, `BatchNorm::forward` and `relu`,
-/// fused on the CPU inference backend (see the module documentation).
+/// computed by the backend's [`ModelBackend::conv2d_bn`] (fused on the CPU inference backend, one
+/// autodiff op for the convolution on the CPU training backend; see the module documentation).
 ///
 /// # Shapes
 /// - x: `[N, C_in, H, W]`
 /// - returns `[N, C_out, H_out, W_out]` (burn's output-size rule)
-pub fn conv_bn<B: Backend>(
+pub fn conv_bn<B: ModelBackend>(
     conv: &Conv2d<B>,
     bn: Option<&BatchNorm<B>>,
     x: Tensor<B, 4>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
-    let out = conv_bn_any(conv, bn, x, apply_relu);
+    let out = B::conv2d_bn(conv, bn, x, apply_relu);
     if crate::profile::counting() {
         crate::profile::add_conv2d(conv.weight.dims(), out.shape().num_elements());
     }
     out
 }
 
-/// [`conv_bn`] without the MAC count.
-fn conv_bn_any<B: Backend>(
+/// [`conv_bn`] with burn's own modules: `Conv2d::forward`, then `BatchNorm::forward`, then `relu`
+/// (the portable path, any backend).
+pub fn conv_bn_portable<B: Backend>(
     conv: &Conv2d<B>,
     bn: Option<&BatchNorm<B>>,
     x: Tensor<B, 4>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
-    if let Some(out) = conv_bn_host(conv, bn, &x, apply_relu) {
-        return out;
-    }
-    let y = if is_host_autodiff::<B>() {
-        conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv.forward(x))
-    } else {
-        conv.forward(x)
-    };
+    bn_relu(conv.forward(x), bn, apply_relu)
+}
+
+/// `relu?(bn?(y))` with burn's `BatchNorm::forward` and `relu`.
+pub(crate) fn bn_relu<B: Backend>(
+    y: Tensor<B, 4>,
+    bn: Option<&BatchNorm<B>>,
+    apply_relu: bool,
+) -> Tensor<B, 4> {
     let y = match bn {
         Some(bn) => bn.forward(y),
         None => y,
@@ -73,35 +78,27 @@ fn conv_bn_any<B: Backend>(
     }
 }
 
-/// The fused host path of [`conv_bn`] alone: `None` where it does not apply (not burn-ndarray
-/// inference, grouped or non-explicit padding, or tensors whose dtype is not the backend's, since
-/// burn 0.21 fixes a device's float dtype at the first tensor of the process); [`conv_bn`] then
-/// falls back to burn's ops.
+/// The fused host path of [`conv_bn`] on the CPU inference backend (`NdArray<f32 | f64>`): `None`
+/// where it does not apply (grouped or non-explicit padding, sizes burn should report, or tensors
+/// whose dtype is not the backend's, since burn 0.21 fixes a device's float dtype at the first
+/// tensor of the process); [`ModelBackend::conv2d_bn`] then falls back to burn's ops.
 ///
 /// # Shapes
 /// - x: `[N, C_in, H, W]`
 /// - returns `[N, C_out, H_out, W_out]`
-pub fn conv_bn_host<B: Backend>(
-    conv: &Conv2d<B>,
-    bn: Option<&BatchNorm<B>>,
-    x: &Tensor<B, 4>,
+pub fn conv_bn_host<T: NdElem>(
+    conv: &Conv2d<NdArray<T>>,
+    bn: Option<&BatchNorm<NdArray<T>>>,
+    x: &Tensor<NdArray<T>, 4>,
     apply_relu: bool,
-) -> Option<Tensor<B, 4>> {
-    let pads = host_plan::<B>(conv)?;
-    if is_host_f32::<B>() {
-        host_forward::<B, f32>(conv, bn, x, pads, apply_relu)
-    } else {
-        host_forward::<B, f64>(conv, bn, x, pads, apply_relu)
-    }
-}
-
-/// Padding `(top, left, bottom, right)` when the host path applies: burn-ndarray f32/f64 without
-/// autodiff, ungrouped convolution, explicit or no padding.
-fn host_plan<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
-    if !is_host_backend::<B>() {
-        return None;
-    }
-    padding_of(conv)
+) -> Option<Tensor<NdArray<T>, 4>>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    let pads = padding_of(conv)?;
+    let out = host_forward(conv, bn, x, pads, apply_relu)?;
+    super::count(|c| c.conv2d += 1);
+    Some(out)
 }
 
 /// Padding `(top, left, bottom, right)` of an ungrouped convolution with explicit or no padding.
@@ -301,34 +298,75 @@ impl Geometry {
 }
 
 /// The fused host forward; `None` (caller falls back to burn) if a tensor's element type is not `T`.
-fn host_forward<B: Backend, T: Elem>(
-    conv: &Conv2d<B>,
-    bn: Option<&BatchNorm<B>>,
-    x: &Tensor<B, 4>,
-    [top, left, bottom, right]: [usize; 4],
+fn host_forward<T: NdElem>(
+    conv: &Conv2d<NdArray<T>>,
+    bn: Option<&BatchNorm<NdArray<T>>>,
+    x: &Tensor<NdArray<T>, 4>,
+    pads: [usize; 4],
     apply_relu: bool,
-) -> Option<Tensor<B, 4>> {
-    let [n, cin, h, w] = x.dims();
-    let [cout, _, kh, kw] = conv.weight.dims();
-    let geo = Geometry::of(conv, x.dims(), [top, left, bottom, right])?;
-
-    // Fold the BN (inference statistics) into the weight rows and the bias, in f64.
+) -> Option<Tensor<NdArray<T>, 4>>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    let [n, cin, _, _] = x.dims();
+    let [cout, ..] = conv.weight.dims();
+    let geo = Geometry::of(conv, x.dims(), pads)?;
     let weight: Vec<T> = read(&conv.weight.val())?;
-    let bias: Vec<f64> = match &conv.bias {
-        Some(b) => read::<B, 1, T>(&b.val())?
-            .iter()
-            .map(|v| v.to_f64())
-            .collect(),
+    let bias: Option<Vec<T>> = match &conv.bias {
+        Some(b) => Some(read(&b.val())?),
+        None => None,
+    };
+    let bn = match bn {
+        Some(bn) => Some(BnStats {
+            gamma: read(&bn.gamma.val())?,
+            beta: read(&bn.beta.val())?,
+            mean: read(&bn.running_mean.value())?,
+            var: read(&bn.running_var.value())?,
+            epsilon: bn.epsilon,
+        }),
+        None => None,
+    };
+    let (weight, shift) = fold_bn(weight, cout, bias, bn);
+    let out = with_host_slice(x, |input: &[T]| {
+        fused_forward(&geo, n, cin, cout, &weight, &shift, input, apply_relu)
+    })?;
+    Some(Tensor::from_data(
+        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
+        &x.device(),
+    ))
+}
+
+/// A BatchNorm's affine parameters and inference statistics, per channel.
+struct BnStats<T> {
+    gamma: Vec<T>,
+    beta: Vec<T>,
+    mean: Vec<T>,
+    var: Vec<T>,
+    epsilon: f64,
+}
+
+/// The weight `[C_out, k]` with the BN's `gamma / sqrt(var + eps)` folded into its rows, and the
+/// per-channel shift `(bias - mean)·scale + beta` (the bias alone without BN); folded in f64.
+fn fold_bn<T: Elem>(
+    weight: Vec<T>,
+    cout: usize,
+    bias: Option<Vec<T>>,
+    bn: Option<BnStats<T>>,
+) -> (Vec<T>, Vec<T>) {
+    let bias: Vec<f64> = match bias {
+        Some(b) => b.iter().map(|v| v.to_f64()).collect(),
         None => vec![0.0; cout],
     };
     let (scale, shift) = match bn {
-        Some(bn) => {
-            let g: Vec<T> = read(&bn.gamma.val())?;
-            let b: Vec<T> = read(&bn.beta.val())?;
-            let m: Vec<T> = read(&bn.running_mean.value())?;
-            let v: Vec<T> = read(&bn.running_var.value())?;
+        Some(BnStats {
+            gamma: g,
+            beta: b,
+            mean: m,
+            var: v,
+            epsilon,
+        }) => {
             let scale: Vec<f64> = (0..cout)
-                .map(|o| g[o].to_f64() / (v[o].to_f64() + bn.epsilon).sqrt())
+                .map(|o| g[o].to_f64() / (v[o].to_f64() + epsilon).sqrt())
                 .collect();
             let shift = (0..cout)
                 .map(|o| (bias[o] - m[o].to_f64()) * scale[o] + b[o].to_f64())
@@ -337,7 +375,7 @@ fn host_forward<B: Backend, T: Elem>(
         }
         None => (None, bias),
     };
-    let k = cin * kh * kw;
+    let k = weight.len() / cout.max(1);
     let weight: Vec<T> = match &scale {
         Some(s) => weight
             .chunks(k)
@@ -346,53 +384,92 @@ fn host_forward<B: Backend, T: Elem>(
             .collect(),
         None => weight,
     };
-    let shift: Vec<T> = shift.into_iter().map(T::from_f64).collect();
+    (weight, shift.into_iter().map(T::from_f64).collect())
+}
 
+/// `relu?(weight · unfolded(x_n) + shift)` per image of `input [N, C_in, H, W]`:
+/// `[N, C_out, H_out·W_out]`.
+#[allow(clippy::too_many_arguments)]
+fn fused_forward<T: Elem>(
+    geo: &Geometry,
+    n: usize,
+    cin: usize,
+    cout: usize,
+    weight: &[T],
+    shift: &[T],
+    input: &[T],
+    apply_relu: bool,
+) -> Vec<T> {
     let hw_out = geo.ho * geo.wo;
     let mut out = vec![T::zero(); n * cout * hw_out];
     let mut col = geo.col_buffer::<T>(cin);
-    with_host_slice(x, |input: &[T]| {
-        for (img, dst) in input.chunks(cin * h * w).zip(out.chunks_mut(cout * hw_out)) {
-            geo.gemm_image(&weight, cout, img, &mut col, dst);
-            dst.par_chunks_mut(hw_out)
-                .zip(shift.par_iter())
-                .for_each(|(row, &s)| {
-                    for v in row.iter_mut() {
-                        let y = *v + s;
-                        *v = if apply_relu && y < T::zero() {
-                            T::zero()
-                        } else {
-                            y
-                        };
-                    }
-                });
-        }
-    })?;
-    Some(Tensor::from_data(
-        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
-        &x.device(),
-    ))
+    for (img, dst) in input
+        .chunks(cin * geo.h * geo.w)
+        .zip(out.chunks_mut(cout * hw_out))
+    {
+        geo.gemm_image(weight, cout, img, &mut col, dst);
+        dst.par_chunks_mut(hw_out)
+            .zip(shift.par_iter())
+            .for_each(|(row, &s)| {
+                for v in row.iter_mut() {
+                    let y = *v + s;
+                    *v = if apply_relu && y < T::zero() {
+                        T::zero()
+                    } else {
+                        y
+                    };
+                }
+            });
+    }
+    out
 }
 
 /// `conv.forward(x)` on the CPU training backend (`Autodiff<NdArray<f32 | f64>>`) as one autodiff
 /// op computed like the inference path: im2col + GEMM forward; backward `dW = Σ_n dY_n · col_nᵀ`,
 /// `db = Σ dY`, `dX_n = col2im(Wᵀ · dY_n)` (burn-ndarray's own `conv2d` and its backward are direct
-/// loops). `None` on other backends, grouped or `Same`-padded convolutions, sizes burn should
-/// report, or tensors whose element type is not the backend's (burn 0.21 fixes a device's float
-/// dtype at the first tensor of the process).
-pub fn conv_autodiff<B: Backend>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Option<Tensor<B, 4>> {
+/// loops). `None` for grouped or `Same`-padded convolutions, sizes burn should report, or tensors
+/// whose element type is not the backend's (burn 0.21 fixes a device's float dtype at the first
+/// tensor of the process); [`ModelBackend::conv2d_autodiff`] then falls back to `Conv2d::forward`.
+pub fn conv_autodiff<T: NdElem, C: CheckpointStrategy>(
+    conv: &Conv2d<Autodiff<NdArray<T>, C>>,
+    x: Tensor<Autodiff<NdArray<T>, C>, 4>,
+) -> Option<Tensor<Autodiff<NdArray<T>, C>, 4>>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    use burn::backend::autodiff::ops::{Backward, OpsKind};
+    use burn::tensor::ops::FloatTensorOps;
     let pads = padding_of(conv)?;
     let geo = Geometry::of(conv, x.dims(), pads)?;
-    if is_host_f32_autodiff::<B>() {
-        conv_autodiff_typed::<B, f32>(conv, x, geo)
-    } else {
-        conv_autodiff_typed::<B, f64>(conv, x, geo)
-    }
-}
-
-fn is_host_f32_autodiff<B: Backend>() -> bool {
-    std::any::TypeId::of::<B>()
-        == std::any::TypeId::of::<burn::backend::Autodiff<burn::backend::NdArray<f32>>>()
+    let [n, cin, _, _] = x.dims();
+    let [cout, ..] = conv.weight.dims();
+    let bias = match &conv.bias {
+        Some(b) => b.val(),
+        None => Tensor::zeros([cout], &x.device()),
+    };
+    let x = to_ad(x);
+    let weight = to_ad(conv.weight.val());
+    let bias = to_ad(bias);
+    let saved = ConvSaved {
+        geo,
+        n,
+        cin,
+        cout,
+        x: host_vec(&x.primitive)?,
+        weight: host_vec(&weight.primitive)?,
+    };
+    let out = saved.forward(&host_vec::<T>(&bias.primitive)?);
+    let out = NdArray::<T>::float_from_data(
+        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
+        &Default::default(),
+    );
+    let nodes = [x.node.clone(), weight.node.clone(), bias.node.clone()];
+    let result = match ConvBackward.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish(std::sync::Arc::new(saved), out),
+        OpsKind::UnTracked(prep) => prep.finish(out),
+    };
+    super::count(|c| c.conv2d_autodiff += 1);
+    Some(from_ad(result))
 }
 
 /// What the backward pass of [`conv_autodiff`] needs.
@@ -494,61 +571,13 @@ impl<T: Elem> ConvSaved<T> {
     }
 }
 
-fn conv_autodiff_typed<B: Backend, T>(
-    conv: &Conv2d<B>,
-    x: Tensor<B, 4>,
-    geo: Geometry,
-) -> Option<Tensor<B, 4>>
-where
-    T: Elem + burn::backend::ndarray::FloatNdArrayElement,
-    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
-{
-    use burn::backend::autodiff::checkpoint::strategy::NoCheckpointing;
-    use burn::backend::autodiff::ops::{Backward, OpsKind};
-    use burn::backend::NdArray;
-    use burn::tensor::ops::FloatTensorOps;
-    let [n, cin, _, _] = x.dims();
-    let [cout, ..] = conv.weight.dims();
-    let bias = match &conv.bias {
-        Some(b) => b.val(),
-        None => Tensor::zeros([cout], &x.device()),
-    };
-    let x = to_ad::<B, 4, T>(x)?;
-    let weight = to_ad::<B, 4, T>(conv.weight.val())?;
-    let bias = to_ad::<B, 1, T>(bias)?;
-    let saved = ConvSaved {
-        geo,
-        n,
-        cin,
-        cout,
-        x: host_vec(&x.primitive)?,
-        weight: host_vec(&weight.primitive)?,
-    };
-    let out = saved.forward(&host_vec::<T>(&bias.primitive)?);
-    let out = NdArray::<T>::float_from_data(
-        TensorData::new(out, [n, cout, geo.ho, geo.wo]),
-        &Default::default(),
-    );
-    let nodes = [x.node.clone(), weight.node.clone(), bias.node.clone()];
-    let result = match ConvBackward
-        .prepare::<NoCheckpointing>(nodes)
-        .compute_bound()
-        .stateful()
-    {
-        OpsKind::Tracked(prep) => prep.finish(std::sync::Arc::new(saved), out),
-        OpsKind::UnTracked(prep) => prep.finish(out),
-    };
-    from_ad(result)
-}
-
 /// The backward step of [`conv_autodiff`].
 #[derive(Debug)]
 struct ConvBackward;
 
-impl<T> burn::backend::autodiff::ops::Backward<burn::backend::NdArray<T>, 3> for ConvBackward
+impl<T: NdElem> burn::backend::autodiff::ops::Backward<NdArray<T>, 3> for ConvBackward
 where
-    T: Elem + burn::backend::ndarray::FloatNdArrayElement,
-    burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+    NdArrayTensor: From<SharedArray<T>>,
 {
     type State = std::sync::Arc<ConvSaved<T>>;
 

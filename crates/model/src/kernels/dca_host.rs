@@ -1,33 +1,35 @@
-//! The sampling step of deformable cross attention ([`crate::sparseocc_pp::dca`]) as host loops with their own
+//! The sampling step of deformable cross attention ([`crate::kernels::dca`]) as host loops with their own
 //! backward pass, for burn-ndarray with and without autodiff (the CPU training and inference paths).
 //!
 //! `out[q] = 1/|V_q| · Σ_{hits h of q} g_h · Σ_{m, l, j} w_{qmlj} · bilinear(values_l[img_h], ref_h/s_l + Δp_{qmlj})[head m]`
 //!
-//! This is the function [`crate::sparseocc_pp::dca::DeformableCrossAttention::aggregate_tensor_ops`] composes from
-//! `select`, `grid_sample` and `select_assign` (zero padding, `align_corners = false`), computed the
-//! way Deformable DETR's `MSDeformAttn` kernel does: one pass over the (hit, head, level, point) taps
+//! This is the function [`crate::kernels::dca::sample_tensor_ops`] composes from `select`,
+//! `grid_sample` and `select_assign` (zero padding, `align_corners = false`), computed the way
+//! Deformable DETR's `MSDeformAttn` kernel does: one pass over the (hit, head, level, point) taps
 //! forward, one pass backward that writes the gradients of the value maps (scattered over the four
 //! bilinear corners), of the offsets (the derivative of the bilinear weights), of the attention
 //! weights and of the per-hit gate. burn's generic `grid_sample` on `Autodiff<NdArray>` expands the
 //! value maps per sample and scatters element by element in its backward; in the demo's training
 //! step that and the surrounding copies were about half of the time (perf, 2-core machine).
 //!
-//! On `Autodiff<NdArray<f32 | f64>>` the op is registered with burn's autodiff graph
-//! ([`Backward`]), so the rest of the model is unchanged; on any other backend (CUDA) the tensor-op
-//! composition is used. The tests in `dca.rs` check values and every gradient against it.
+//! [`crate::kernels::ModelBackend`] runs [`sample_host`] on `NdArray` and [`sample_autodiff`] (the op
+//! registered with burn's autodiff graph, [`Backward`]) on `Autodiff<NdArray>`, so the rest of the
+//! model is unchanged; every other backend (CUDA) runs the tensor-op composition. The tests in
+//! `tests/model_f64/pp_dca.rs` check values and every gradient against it.
 
-use crate::kernels::host_data::{from_ad, host_vec, to_ad, AdTensor, Elem};
-use crate::sparseocc_pp::dca::ViewHits;
+use crate::kernels::dca::{DcaSample, ViewHits};
+use crate::kernels::host_data::{from_ad, host_vec, to_ad, AdTensor, Elem, NdElem};
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::backend::ndarray::{FloatNdArrayElement, NdArrayTensor, SharedArray};
+use burn::backend::ndarray::{NdArrayTensor, SharedArray};
 use burn::backend::{Autodiff, NdArray};
 use burn::prelude::*;
 use burn::tensor::ops::FloatTensorOps;
-use burn::tensor::TensorData;
+use burn::tensor::{DType, TensorData};
+use occ_sparse::host::HostFloat;
 use rayon::prelude::*;
-use std::any::TypeId;
 use std::sync::Arc;
 
 /// One image feature level: `h × w` feature pixels, `stride` input pixels per feature pixel, rows
@@ -61,6 +63,20 @@ pub(crate) struct SampleLayout {
 }
 
 impl SampleLayout {
+    /// The layout of the taps of `s`.
+    pub fn of<B: Backend>(s: &DcaSample<'_, B>) -> Self {
+        let dims: Vec<(usize, usize, usize)> = s
+            .values
+            .iter()
+            .map(|v| {
+                let [bv, h, w, _] = v.dims();
+                (bv, h, w)
+            })
+            .collect();
+        let (m, p) = s.heads_points();
+        Self::new(s.hits, &dims, s.strides, m, p, s.width())
+    }
+
     /// Layout of `hits` over levels of `dims[l] = (num_images, h, w)` with `strides[l]`.
     pub fn new(
         hits: &ViewHits,
@@ -296,54 +312,115 @@ pub(crate) struct Saved<T> {
     gate: Option<Vec<T>>,
 }
 
-/// The sampling on `Autodiff<NdArray<f32 | f64>>` as one autodiff op; `None` on other backends.
+/// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
+/// row, column order; `D` head-major), the layout of [`SampleLayout`].
+fn value_rows<B: Backend>(values: Vec<Tensor<B, 4>>) -> Tensor<B, 2> {
+    let rows: Vec<Tensor<B, 2>> = values
+        .into_iter()
+        .map(|v| {
+            let [bv, h, w, d] = v.dims();
+            v.reshape([bv * h * w, d])
+        })
+        .collect();
+    Tensor::cat(rows, 0)
+}
+
+/// The float type the host loops can run `s` in: f32 or f64 when the values, offsets and weights
+/// all hold it, else `None`.
+pub(crate) fn host_dtype<B: Backend>(s: &DcaSample<'_, B>) -> Option<DType> {
+    let dtype = s.offsets.dtype();
+    let same = s.weights.dtype() == dtype && s.values.iter().all(|v| v.dtype() == dtype);
+    (same && matches!(dtype, DType::F32 | DType::F64)).then_some(dtype)
+}
+
+/// The sampling as one host loop (CPU inference; not differentiable), in the float type of the
+/// tensors (f32 or f64; the gate is converted to it). The tensors go through `TensorData`: the
+/// offsets, weights and value rows are freshly computed, unshared tensors, whose `into_data` hands
+/// over their buffers without copying. `Err(s)` (the inputs back) when [`host_dtype`] is `None`.
 ///
 /// # Shapes
-/// - `values`: `[R, D]` (the value maps of all levels, channel-last rows, see [`LevelGeom`])
-/// - `off`: `[N, M, L, P, 2]` feature pixels; `wts`: `[N, M, L, P]`; `gate`: `[num_hits]`
-/// - returns `[N, D]`
-pub(crate) fn sample_autodiff<B: Backend>(
-    layout: SampleLayout,
-    values: Tensor<B, 2>,
-    off: Tensor<B, 5>,
-    wts: Tensor<B, 4>,
-    gate: Option<Tensor<B, 1>>,
-) -> Option<Tensor<B, 2>> {
-    if TypeId::of::<B>() == TypeId::of::<Autodiff<NdArray<f32>>>() {
-        typed::<B, f32>(layout, values, off, wts, gate)
-    } else if TypeId::of::<B>() == TypeId::of::<Autodiff<NdArray<f64>>>() {
-        typed::<B, f64>(layout, values, off, wts, gate)
-    } else {
-        None
+/// see [`DcaSample`]; returns `[N, D]`
+#[allow(clippy::result_large_err)]
+pub(crate) fn sample_host<'a, B: Backend>(
+    s: DcaSample<'a, B>,
+) -> Result<Tensor<B, 2>, DcaSample<'a, B>> {
+    match host_dtype(&s) {
+        Some(DType::F32) => Ok(sample_host_typed::<B, f32>(s)),
+        Some(DType::F64) => Ok(sample_host_typed::<B, f64>(s)),
+        _ => Err(s),
     }
 }
 
-fn typed<B: Backend, T: Elem + FloatNdArrayElement>(
-    layout: SampleLayout,
-    values: Tensor<B, 2>,
-    off: Tensor<B, 5>,
-    wts: Tensor<B, 4>,
-    gate: Option<Tensor<B, 1>>,
-) -> Option<Tensor<B, 2>>
+fn sample_host_typed<B: Backend, T: Elem>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
+    let device = s.offsets.device();
+    let layout = SampleLayout::of(&s);
+    let DcaSample {
+        values,
+        offsets,
+        weights,
+        gate,
+        ..
+    } = s;
+    let vec = |d: TensorData| -> Vec<T> { d.into_vec().expect("dtype checked") };
+    let gate: Option<Vec<T>> = gate.map(|g| vec(g.into_data().convert::<T>()));
+    let off = vec(offsets.into_data());
+    let wts = vec(weights.into_data());
+    let values = vec(value_rows(values).into_data());
+    let out = layout.forward(&values, &off, &wts, gate.as_deref());
+    super::count(|c| c.dca += 1);
+    Tensor::from_data(TensorData::new(out, [layout.n, layout.d]), &device)
+}
+
+/// The sampling on `Autodiff<NdArray<T>, C>` (CPU training) as one autodiff op with its own backward
+/// pass; `Err(s)` (the inputs back) when a tensor holds another float type than `T` (burn 0.21 fixes
+/// a device's float dtype at the first tensor of the process).
+///
+/// # Shapes
+/// see [`DcaSample`]; the value rows are `[R, D]`, all levels (see [`LevelGeom`]); returns `[N, D]`
+#[allow(clippy::result_large_err, clippy::type_complexity)]
+pub(crate) fn sample_autodiff<'a, T, C>(
+    s: DcaSample<'a, Autodiff<NdArray<T>, C>>,
+) -> Result<Tensor<Autodiff<NdArray<T>, C>, 2>, DcaSample<'a, Autodiff<NdArray<T>, C>>>
 where
+    T: NdElem,
+    C: CheckpointStrategy,
     NdArrayTensor: From<SharedArray<T>>,
 {
-    let device = values.device();
+    let gate_ok = s.gate.as_ref().is_none_or(|g| g.dtype() == T::dtype());
+    if host_dtype(&s) != Some(T::dtype()) || !gate_ok {
+        return Err(s);
+    }
+    let layout = SampleLayout::of(&s);
+    let device = s.offsets.device();
+    let DcaSample {
+        values,
+        offsets,
+        weights,
+        gate,
+        ..
+    } = s;
     let gate = match gate {
         Some(g) => g,
-        None => Tensor::<B, 1>::ones([layout.num_hits()], &device),
+        None => Tensor::from_data(
+            TensorData::new(
+                vec![<T as HostFloat>::one(); layout.num_hits()],
+                [layout.num_hits()],
+            ),
+            &device,
+        ),
     };
     let (values, off, wts, gate) = (
-        to_ad::<B, 2, T>(values)?,
-        to_ad::<B, 5, T>(off)?,
-        to_ad::<B, 4, T>(wts)?,
-        to_ad::<B, 1, T>(gate)?,
+        to_ad(value_rows(values)),
+        to_ad(offsets),
+        to_ad(weights),
+        to_ad(gate),
     );
+    let host = |t: &AdTensor<T, C>| host_vec::<T>(&t.primitive).expect("dtype checked");
     let saved = Saved {
-        values: host_vec(&values.primitive)?,
-        off: host_vec(&off.primitive)?,
-        wts: host_vec(&wts.primitive)?,
-        gate: Some(host_vec(&gate.primitive)?),
+        values: host(&values),
+        off: host(&off),
+        wts: host(&wts),
+        gate: Some(host(&gate)),
         layout,
     };
     let out = saved
@@ -357,22 +434,23 @@ where
         wts.node.clone(),
         gate.node.clone(),
     ];
-    let result: AdTensor<T> = match DeformSampleBackward
-        .prepare::<burn::backend::autodiff::checkpoint::strategy::NoCheckpointing>(nodes)
+    let result: AdTensor<T, C> = match DeformSampleBackward
+        .prepare::<C>(nodes)
         .compute_bound()
         .stateful()
     {
         OpsKind::Tracked(prep) => prep.finish(Arc::new(saved), out_prim),
         OpsKind::UnTracked(prep) => prep.finish(out_prim),
     };
-    from_ad(result)
+    super::count(|c| c.dca_autodiff += 1);
+    Ok(from_ad(result))
 }
 
 /// The backward step of [`sample_autodiff`].
 #[derive(Debug)]
 struct DeformSampleBackward;
 
-impl<T: Elem + FloatNdArrayElement> Backward<NdArray<T>, 4> for DeformSampleBackward
+impl<T: NdElem> Backward<NdArray<T>, 4> for DeformSampleBackward
 where
     NdArrayTensor: From<SharedArray<T>>,
 {

@@ -1,31 +1,24 @@
-//! Zero-copy access to tensors of the CPU inference backend (burn-ndarray without autodiff) for the
-//! fused host kernels ([`crate::kernels::conv2d_host`], the DCA host loop in [`crate::sparseocc_pp::dca`]).
+//! Zero-copy access to the tensors of burn-ndarray (with and without autodiff) for the host kernels
+//! ([`crate::kernels::conv2d_host`], [`crate::kernels::dca_host`]).
 //!
 //! `Tensor::into_data` iterates element by element when the array is shared (a parameter, a tensor
 //! also kept for a residual connection): about 35 ns per value, more than the GEMM it feeds. The host
-//! kernels borrow the array's memory instead.
+//! kernels borrow the array's memory instead. Every function here is typed on the backend
+//! (`NdArray<T>` or `Autodiff<NdArray<T>, C>`), so the primitive is known at compile time; a tensor
+//! whose element type is not `T` (burn 0.21 fixes a device's float dtype at the first tensor of the
+//! process, so an `NdArray<f64>` tensor can hold f32 values) gives `None`.
 
-use burn::backend::ndarray::NdArrayTensor;
-use burn::tensor::backend::Backend;
-use burn::tensor::Tensor;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::ndarray::{FloatNdArrayElement, NdArrayTensor, SharedArray};
+use burn::backend::{Autodiff, NdArray};
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{Tensor, TensorPrimitive};
 use occ_sparse::host::HostFloat;
 
-/// Whether `B` is the CPU inference backend (burn-ndarray f32 or f64, no autodiff).
-pub(crate) fn is_host_backend<B: Backend>() -> bool {
-    use std::any::TypeId;
-    let t = TypeId::of::<B>();
-    t == TypeId::of::<burn::backend::NdArray<f32>>()
-        || t == TypeId::of::<burn::backend::NdArray<f64>>()
-}
-
-/// Whether `B` is burn-ndarray f32 (host kernels then compute in f32, otherwise in f64).
-pub(crate) fn is_host_f32<B: Backend>() -> bool {
-    std::any::TypeId::of::<B>() == std::any::TypeId::of::<burn::backend::NdArray<f32>>()
-}
-
-/// Float types of the host path: [`HostFloat`] plus conversion from the f64 the folding is done in,
-/// and zero-copy access to a burn-ndarray tensor of that type.
-pub(crate) trait Elem:
+/// Float types of the host kernels (f32 and f64): [`HostFloat`] plus conversion from the f64 the
+/// BatchNorm folding and the bilinear weights are computed in, and zero-copy access to a
+/// burn-ndarray tensor of that type.
+pub trait Elem:
     HostFloat
     + std::ops::Mul<Output = Self>
     + std::ops::Add<Output = Self>
@@ -39,8 +32,13 @@ pub(crate) trait Elem:
     fn with_slice<R>(t: &NdArrayTensor, f: impl FnOnce(&[Self]) -> R) -> Option<R>;
 }
 
+/// An [`Elem`] that is also burn-ndarray's float element, so that `NdArray<T>` is a backend.
+pub trait NdElem: Elem + FloatNdArrayElement {}
+
+impl NdElem for f32 {}
+impl NdElem for f64 {}
+
 impl Elem for f32 {
-    /// From f64 (rounded for f32).
     fn from_f64(v: f64) -> Self {
         v as f32
     }
@@ -53,7 +51,6 @@ impl Elem for f32 {
 }
 
 impl Elem for f64 {
-    /// From f64 (rounded for f32).
     fn from_f64(v: f64) -> Self {
         v
     }
@@ -65,58 +62,51 @@ impl Elem for f64 {
     }
 }
 
-/// `f(values)` of a tensor of the burn-ndarray backend without going through `TensorData` (whose
-/// conversion iterates element by element when the array is shared, e.g. a parameter or a tensor
-/// also kept for a residual connection).
-pub(crate) fn with_host_slice<B: Backend, const D: usize, T: Elem, R>(
-    x: &Tensor<B, D>,
+/// `f(values)` of a burn-ndarray tensor without going through `TensorData` (whose conversion
+/// iterates element by element when the array is shared, e.g. a parameter or a tensor also kept for
+/// a residual connection); `None` when it holds another element type than `T`.
+pub(crate) fn with_host_slice<T: NdElem, const D: usize, R>(
+    x: &Tensor<NdArray<T>, D>,
     f: impl FnOnce(&[T]) -> R,
-) -> Option<R> {
-    let prim = x.clone().into_primitive().tensor();
-    let nd = (&prim as &dyn std::any::Any).downcast_ref::<NdArrayTensor>()?;
-    T::with_slice(nd, f)
+) -> Option<R>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    let prim: NdArrayTensor = x.clone().into_primitive().tensor();
+    T::with_slice(&prim, f)
 }
 
 /// The values of a burn-ndarray tensor of element type `T`, row-major (a copy).
-pub(crate) fn read<B: Backend, const D: usize, T: Elem>(t: &Tensor<B, D>) -> Option<Vec<T>> {
+pub(crate) fn read<T: NdElem, const D: usize>(t: &Tensor<NdArray<T>, D>) -> Option<Vec<T>>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
     with_host_slice(t, |s: &[T]| s.to_vec())
 }
 
-/// Whether `B` is the CPU training backend `Autodiff<NdArray<f32 | f64>>` (the host autodiff ops of
-/// [`crate::kernels::dca_host`] and [`crate::kernels::conv2d_host`] then replace burn's generic kernels).
-pub(crate) fn is_host_autodiff<B: Backend>() -> bool {
-    use burn::backend::{Autodiff, NdArray};
-    use std::any::TypeId;
-    let t = TypeId::of::<B>();
-    t == TypeId::of::<Autodiff<NdArray<f32>>>() || t == TypeId::of::<Autodiff<NdArray<f64>>>()
+/// The primitive of the CPU training backend with element type `T` and checkpointing `C`.
+pub(crate) type AdTensor<T, C> = FloatTensor<Autodiff<NdArray<T>, C>>;
+
+/// The autodiff primitive of a tensor of the CPU training backend.
+pub(crate) fn to_ad<T, C: CheckpointStrategy, const D: usize>(
+    t: Tensor<Autodiff<NdArray<T>, C>, D>,
+) -> AdTensor<T, C>
+where
+    T: NdElem,
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    t.into_primitive().tensor()
 }
 
-/// The primitive of the CPU training backend with element type `T`.
-pub(crate) type AdTensor<T> =
-    burn::tensor::ops::FloatTensor<burn::backend::Autodiff<burn::backend::NdArray<T>>>;
-
-/// The autodiff primitive of `t` when `B` is `Autodiff<NdArray<T>>`, else `None`.
-pub(crate) fn to_ad<B: Backend, const D: usize, T>(t: Tensor<B, D>) -> Option<AdTensor<T>>
+/// Back from [`to_ad`].
+pub(crate) fn from_ad<T, C: CheckpointStrategy, const D: usize>(
+    t: AdTensor<T, C>,
+) -> Tensor<Autodiff<NdArray<T>, C>, D>
 where
-    T: burn::backend::ndarray::FloatNdArrayElement,
-    NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
+    T: NdElem,
+    NdArrayTensor: From<SharedArray<T>>,
 {
-    let prim = t.into_primitive().tensor();
-    let any: Box<dyn std::any::Any> = Box::new(prim);
-    any.downcast::<AdTensor<T>>().ok().map(|b| *b)
-}
-
-/// Back from [`to_ad`]: `None` when `B` is not `Autodiff<NdArray<T>>`.
-pub(crate) fn from_ad<B: Backend, const D: usize, T>(t: AdTensor<T>) -> Option<Tensor<B, D>>
-where
-    T: burn::backend::ndarray::FloatNdArrayElement,
-    NdArrayTensor: From<burn::backend::ndarray::SharedArray<T>>,
-{
-    let any: Box<dyn std::any::Any> = Box::new(t);
-    let prim = any.downcast::<B::FloatTensorPrimitive>().ok()?;
-    Some(Tensor::from_primitive(
-        burn::tensor::TensorPrimitive::Float(*prim),
-    ))
+    Tensor::from_primitive(TensorPrimitive::Float(t))
 }
 
 /// A copy of the values of a burn-ndarray primitive of element type `T`.

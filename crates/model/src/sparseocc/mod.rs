@@ -18,6 +18,7 @@ pub mod pyramid;
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::kernels::ModelBackend;
 use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
@@ -28,7 +29,7 @@ use crate::sparseocc::propagator::{PropagatorConfig, SparseLatentPropagator};
 use crate::sparseocc::pyramid::{PyramidConfig, SparsePyramid};
 use crate::targets::{check_input, targets_at};
 use burn::prelude::*;
-use occ_sparse::{Coord, SparseConvBackend};
+use occ_sparse::Coord;
 
 /// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (docs/reference_models.md §1);
 /// CPU tests shrink the channels, queries and layers.
@@ -123,10 +124,7 @@ impl SparseOccConfig {
     }
 
     /// Initialises the model; errors on an inconsistent configuration.
-    pub fn init<B: SparseConvBackend>(
-        &self,
-        device: &B::Device,
-    ) -> Result<SparseOcc<B>, ModelError> {
+    pub fn init<B: ModelBackend>(&self, device: &B::Device) -> Result<SparseOcc<B>, ModelError> {
         if self.num_classes < 2 || self.full_dims.contains(&0) {
             return Err(ModelError::Config(format!(
                 "sparseocc.rs: num_classes {} (need >= 2), full_dims {:?}",
@@ -237,7 +235,7 @@ pub struct SoOutput<B: Backend> {
     pub aux: SoAux<B>,
 }
 
-impl<B: SparseConvBackend> SparseOcc<B> {
+impl<B: ModelBackend> SparseOcc<B> {
     /// Runs the model.
     ///
     /// # Shapes

@@ -373,7 +373,7 @@ pub struct AnchorOutput<B: Backend> {
     pub stats: Vec<(String, usize)>,
 }
 
-impl<B: Backend> AnchorGenerator<B> {
+impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
     /// The generation mode.
     pub fn mode(&self) -> AnchorMode {
         self.mode

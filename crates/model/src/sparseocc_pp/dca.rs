@@ -24,20 +24,23 @@
 //! The block around the attention is the usual post-norm transformer layer:
 //! `x = LN(f + W_o·DCA(f + pos))`, `x = LN(x + FFN(x))`.
 //!
-//! Cost: host work is one projection per (voxel, view) (a loop over coordinates). On the CPU the
-//! sampling is one host loop over the (voxel, view) hits (`M·L·N_s·4·D/M` multiply-adds per hit, no
-//! intermediate tensors; [`crate::kernels::dca_host`]), in training registered as one autodiff op with its own
-//! backward pass; on other backends (CUDA) it is one batched `grid_sample` per level over all hits,
-//! padded per image to the largest number of hits of one image.
+//! Cost: host work is one projection per (voxel, view) (a loop over coordinates). The sampling is
+//! the backend's [`ModelBackend::dca_sample`] on a [`DcaSample`] (offsets and weights predicted here,
+//! values projected here): on the CPU one host loop over the (voxel, view) hits
+//! (`M·L·N_s·4·D/M` multiply-adds per hit, no intermediate tensors), in training registered as one
+//! autodiff op with its own backward pass; on other backends (CUDA) one batched `grid_sample` per
+//! level over all hits, padded per image to the largest number of hits of one image
+//! ([`crate::kernels::dca`]). The inputs of the attention travel together as [`DcaInputs`].
 
 use crate::batch::CameraInput;
 use crate::error::ModelError;
-use crate::sample::bilinear_sample;
+use crate::kernels::dca::{sample_tensor_ops, DcaSample};
+use crate::kernels::ModelBackend;
 use burn::module::Param;
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::{relu, softmax};
-use burn::tensor::{IndexingUpdateOp, TensorData};
+use burn::tensor::TensorData;
 use occ_geometry::{project_with, VoxelGrid};
 use occ_sparse::Coord;
 
@@ -168,38 +171,23 @@ pub struct DeformableCrossAttention<B: Backend> {
     num_points: usize,
 }
 
-/// Which views see which query: one entry per (query, view) hit, sorted by image then query.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct ViewHits {
-    /// Number of queries.
-    pub num_queries: usize,
-    /// Number of images `B·V`.
-    pub num_images: usize,
-    /// Query row of each hit.
-    pub query: Vec<u32>,
-    /// Image index `b·V + v` of each hit.
-    pub image: Vec<u32>,
-    /// Slot of each hit among the hits of its image (0-based).
-    pub slot: Vec<u32>,
-    /// Reference point `(u, v)` in network-input pixels.
-    pub uv: Vec<[f64; 2]>,
-    /// Depth of the voxel centre along the view's optical axis, metres.
-    pub depth_m: Vec<f64>,
-    /// Number of views that see each query.
-    pub views_per_query: Vec<u32>,
-    /// Largest number of hits of one image.
-    pub max_per_image: usize,
-}
+pub use crate::kernels::dca::ViewHits;
 
-impl ViewHits {
-    /// Number of (query, view) hits.
-    pub fn len(&self) -> usize {
-        self.query.len()
-    }
-    /// True when no view sees any query.
-    pub fn is_empty(&self) -> bool {
-        self.query.is_empty()
-    }
+/// The inputs of the attention ([`DeformableCrossAttention::aggregate_gated`] and its two paths,
+/// [`DeformableCrossAttention::aggregate_host`] and [`DeformableCrossAttention::aggregate_tensor_ops`]).
+#[derive(Clone, Debug)]
+pub struct DcaInputs<'a, B: Backend> {
+    /// Queries `[N, D]` (feature + position encoding).
+    pub query: Tensor<B, 2>,
+    /// Which views see which query ([`project_queries`]).
+    pub hits: &'a ViewHits,
+    /// Image features of each level, `[B·V, C, h_l, w_l]`.
+    pub feats: &'a [Tensor<B, 4>],
+    /// Input pixels per feature pixel of each level.
+    pub strides: &'a [usize],
+    /// Per-hit gate `[hits.len()]` on the samples before the average over views (e.g. the depth
+    /// gate of [`crate::sparseocc_pp::extras::depth_gate`]); `None` = all ones.
+    pub gate: Option<Tensor<B, 1>>,
 }
 
 /// Projects the centres of the voxels `coords` (`(b, x, y, z)` on `grid`) into every view of their batch
@@ -312,10 +300,6 @@ fn project_points(
     Ok(hits)
 }
 
-fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
-    occ_sparse::backend::index_tensor::<B>(v, device)
-}
-
 impl<B: Backend> DeformableCrossAttention<B> {
     /// Query width `D`.
     pub fn embed_dim(&self) -> usize {
@@ -355,13 +339,49 @@ impl<B: Backend> DeformableCrossAttention<B> {
             .reshape([n * m, dh, h, w])
     }
 
-    fn check_inputs(
-        &self,
-        query: &Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-    ) -> Result<(), ModelError> {
+    /// The projected value maps of every level, channel-last: `feats[l] [B·V, C, h, w]` →
+    /// `[B·V, h, w, D]` (`D` head-major), the layout of [`DcaSample::values`].
+    fn value_maps(&self, feats: &[Tensor<B, 4>]) -> Vec<Tensor<B, 4>> {
+        feats
+            .iter()
+            .map(|f| {
+                let [bv, c, h, w] = f.dims();
+                let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
+                crate::profile::linear(&self.value_proj, rows).reshape([bv, h, w, self.embed_dim])
+            })
+            .collect()
+    }
+
+    /// The sampling op's inputs: offsets and weights predicted from the query, values projected.
+    fn sample_inputs<'a>(&self, inputs: DcaInputs<'a, B>) -> DcaSample<'a, B> {
+        let (offsets, weights) = self.sampling(inputs.query);
+        DcaSample {
+            hits: inputs.hits,
+            strides: inputs.strides,
+            values: self.value_maps(inputs.feats),
+            offsets,
+            weights,
+            gate: inputs.gate,
+        }
+    }
+
+    fn check_inputs(&self, inputs: &DcaInputs<'_, B>) -> Result<(), ModelError> {
+        let DcaInputs {
+            query,
+            hits,
+            feats,
+            strides,
+            gate,
+        } = inputs;
+        if let Some(g) = gate {
+            if g.dims()[0] != hits.len() {
+                return Err(ModelError::Input(format!(
+                    "DCA: {} gate values for {} hits",
+                    g.dims()[0],
+                    hits.len()
+                )));
+            }
+        }
         let [n, d] = query.dims();
         if d != self.embed_dim || n != hits.num_queries {
             return Err(ModelError::Input(format!(
@@ -377,7 +397,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
                 self.num_levels
             )));
         }
-        for (l, (f, &s)) in feats.iter().zip(strides).enumerate() {
+        for (l, (f, &s)) in feats.iter().zip(strides.iter()).enumerate() {
             let [bv, c, h, w] = f.dims();
             if bv != hits.num_images || c != self.feat_channels || h == 0 || w == 0 || s == 0 {
                 return Err(ModelError::Input(format!(
@@ -394,24 +414,49 @@ impl<B: Backend> DeformableCrossAttention<B> {
     /// Checks the inputs; `Some(zeros [N, D])` when no view sees any query (nothing to sample).
     fn checked_or_zeros(
         &self,
-        query: &Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
+        inputs: &DcaInputs<'_, B>,
     ) -> Result<Option<Tensor<B, 2>>, ModelError> {
-        self.check_inputs(query, hits, feats, strides)?;
-        Ok(hits
+        self.check_inputs(inputs)?;
+        let query = &inputs.query;
+        Ok(inputs
+            .hits
             .is_empty()
             .then(|| Tensor::zeros(query.dims(), &query.device())))
     }
 
+    /// [`Self::aggregate_gated`] as one host loop, parallel over queries: per hit of the query, per
+    /// head, level and point, the bilinear sample of the channel-last value map at
+    /// `(u + 0.5)/s_l − 0.5 + Δp` (zero outside the map) weighted by the attention weight; summed
+    /// over the query's hits and divided by its number of views. Coordinates and bilinear weights are
+    /// computed in f64, the channel sums in the tensors' float type (f32 or f64, else an error). The
+    /// path `NdArray` takes for inference; it is not differentiable.
+    pub fn aggregate_host(&self, inputs: DcaInputs<'_, B>) -> Result<Tensor<B, 2>, ModelError> {
+        if let Some(zeros) = self.checked_or_zeros(&inputs)? {
+            return Ok(zeros);
+        }
+        crate::kernels::dca_host::sample_host(self.sample_inputs(inputs))
+            .map_err(|_| ModelError::Input("DCA: the host loop needs f32 or f64 tensors".into()))
+    }
+
+    /// [`Self::aggregate_gated`] composed of burn tensor ops (differentiable; any backend): the hits
+    /// are laid out per image in a padded sampling grid, one `grid_sample` per level
+    /// ([`crate::kernels::dca::sample_tensor_ops`]). The path of the backends without host kernels
+    /// (CUDA).
+    pub fn aggregate_tensor_ops(
+        &self,
+        inputs: DcaInputs<'_, B>,
+    ) -> Result<Tensor<B, 2>, ModelError> {
+        if let Some(zeros) = self.checked_or_zeros(&inputs)? {
+            return Ok(zeros);
+        }
+        Ok(sample_tensor_ops(self.sample_inputs(inputs)))
+    }
+}
+
+impl<B: ModelBackend> DeformableCrossAttention<B> {
     /// The attention itself: the view-averaged, weighted samples `[N, D]` (heads concatenated) before
     /// the output projection, for `query [N, D]` (feature + position), image features
     /// `feats[l] [B·V, C, h_l, w_l]` with `strides[l]` input pixels per feature pixel.
-    ///
-    /// On the CPU inference backend (`NdArray` without autodiff) the sampling runs as one fused host
-    /// loop over the (voxel, view) hits ([`Self::aggregate_host`]); elsewhere (autodiff, CUDA) it is
-    /// composed of burn tensor ops ([`Self::aggregate_tensor_ops`]). Both compute the same function.
     pub fn aggregate(
         &self,
         query: Tensor<B, 2>,
@@ -419,244 +464,28 @@ impl<B: Backend> DeformableCrossAttention<B> {
         feats: &[Tensor<B, 4>],
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
-        self.aggregate_gated(query, hits, feats, strides, None)
-    }
-
-    /// [`Self::aggregate`] with every hit's samples multiplied by `gate[hit]` (`[nh]`, e.g. the
-    /// depth gate of [`crate::sparseocc_pp::extras::depth_gate`]) before the average over views; `None` = all ones.
-    pub fn aggregate_gated(
-        &self,
-        query: Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-        gate: Option<Tensor<B, 1>>,
-    ) -> Result<Tensor<B, 2>, ModelError> {
-        if let Some(g) = &gate {
-            if g.dims()[0] != hits.len() {
-                return Err(ModelError::Input(format!(
-                    "DCA: {} gate values for {} hits",
-                    g.dims()[0],
-                    hits.len()
-                )));
-            }
-        }
-        if crate::profile::counting() {
-            crate::profile::add_macs("dca_sampling", self.sampling_macs(hits.len()));
-        }
-        if crate::kernels::host_data::is_host_backend::<B>() {
-            self.aggregate_host(query, hits, feats, strides, gate)
-        } else if crate::kernels::host_data::is_host_autodiff::<B>() {
-            self.aggregate_host_autodiff(query, hits, feats, strides, gate)
-        } else {
-            self.aggregate_tensor_ops(query, hits, feats, strides, gate)
-        }
-    }
-
-    /// [`Self::aggregate`] as one host loop, parallel over queries: per hit of the query, per head,
-    /// level and point, the bilinear sample of the channel-last value map at
-    /// `(u + 0.5)/s_l − 0.5 + Δp` (zero outside the map) weighted by the attention weight; summed over
-    /// the query's hits and divided by its number of views. Coordinates and bilinear weights are
-    /// computed in f64, the channel sums in the backend's float type (f32 or f64). Tensors are read in
-    /// place (no `TensorData` copies), so this is meant for the burn-ndarray backend; it is not
-    /// differentiable.
-    pub fn aggregate_host(
-        &self,
-        query: Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-        gate: Option<Tensor<B, 1>>,
-    ) -> Result<Tensor<B, 2>, ModelError> {
-        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
-            return Ok(zeros);
-        }
-        let out = if crate::kernels::host_data::is_host_f32::<B>() {
-            self.aggregate_host_typed::<f32>(query, hits, feats, strides, gate)
-        } else {
-            self.aggregate_host_typed::<f64>(query, hits, feats, strides, gate)
-        };
-        out.ok_or_else(|| {
-            ModelError::Input("DCA: the host loop needs burn-ndarray f32/f64 tensors".into())
+        self.aggregate_gated(DcaInputs {
+            query,
+            hits,
+            feats,
+            strides,
+            gate: None,
         })
     }
 
-    fn aggregate_host_typed<T: crate::kernels::host_data::Elem>(
-        &self,
-        query: Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-        gate: Option<Tensor<B, 1>>,
-    ) -> Option<Tensor<B, 2>> {
-        let device = query.device();
-        let [n, d] = query.dims();
-        let gate: Option<Vec<T>> = match gate {
-            Some(g) => Some(g.into_data().convert::<T>().into_vec().ok()?),
-            None => None,
-        };
-        let (offsets, weights) = self.sampling(query);
-        // Freshly computed, unshared tensors: `into_data` hands over their buffers without copying.
-        let off: Vec<T> = offsets.into_data().into_vec().ok()?;
-        let wts: Vec<T> = weights.into_data().into_vec().ok()?;
-        let values: Vec<T> = self.value_rows(feats).into_data().into_vec().ok()?;
-        let layout = self.sample_layout(hits, feats, strides);
-        let out = layout.forward(&values, &off, &wts, gate.as_deref());
-        Some(Tensor::from_data(TensorData::new(out, [n, d]), &device))
-    }
-
-    /// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
-    /// row, column order; `D` head-major), the layout of [`crate::kernels::dca_host`].
-    fn value_rows(&self, feats: &[Tensor<B, 4>]) -> Tensor<B, 2> {
-        let rows: Vec<Tensor<B, 2>> = feats
-            .iter()
-            .map(|f| {
-                let [bv, c, h, w] = f.dims();
-                let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-                crate::profile::linear(&self.value_proj, rows)
-            })
-            .collect();
-        Tensor::cat(rows, 0)
-    }
-
-    fn sample_layout(
-        &self,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-    ) -> crate::kernels::dca_host::SampleLayout {
-        let dims: Vec<(usize, usize, usize)> = feats
-            .iter()
-            .map(|f| {
-                let [bv, _, h, w] = f.dims();
-                (bv, h, w)
-            })
-            .collect();
-        crate::kernels::dca_host::SampleLayout::new(
-            hits,
-            &dims,
-            strides,
-            self.num_heads,
-            self.num_points,
-            self.embed_dim,
-        )
-    }
-
-    /// [`Self::aggregate`] on `Autodiff<NdArray>`: the host loops of [`crate::kernels::dca_host`] registered
-    /// as one autodiff op (forward and backward), the same function as
-    /// [`Self::aggregate_tensor_ops`].
-    pub fn aggregate_host_autodiff(
-        &self,
-        query: Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-        gate: Option<Tensor<B, 1>>,
-    ) -> Result<Tensor<B, 2>, ModelError> {
-        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
+    /// [`Self::aggregate`] with every hit's samples multiplied by `inputs.gate[hit]` before the
+    /// average over views. The sampling is the backend's [`ModelBackend::dca_sample`]: on the CPU
+    /// one host loop over the (voxel, view) hits ([`Self::aggregate_host`]), in CPU training
+    /// registered as one autodiff op with its own backward pass; elsewhere (CUDA) composed of burn
+    /// tensor ops ([`Self::aggregate_tensor_ops`]). All compute the same function.
+    pub fn aggregate_gated(&self, inputs: DcaInputs<'_, B>) -> Result<Tensor<B, 2>, ModelError> {
+        if let Some(zeros) = self.checked_or_zeros(&inputs)? {
             return Ok(zeros);
         }
-        let (offsets, weights) = self.sampling(query.clone());
-        let values = self.value_rows(feats);
-        let layout = self.sample_layout(hits, feats, strides);
-        match crate::kernels::dca_host::sample_autodiff(
-            layout,
-            values,
-            offsets,
-            weights,
-            gate.clone(),
-        ) {
-            Some(out) => Ok(out),
-            // Another backend, or tensors of another float type than the backend's (burn 0.21 fixes
-            // a device's dtype at the first tensor of the process): the tensor-op composition.
-            None => self.aggregate_tensor_ops(query, hits, feats, strides, gate),
+        if crate::profile::counting() {
+            crate::profile::add_macs("dca_sampling", self.sampling_macs(inputs.hits.len()));
         }
-    }
-
-    /// [`Self::aggregate`] composed of burn tensor ops (differentiable; any backend): the hits are
-    /// laid out per image in a padded sampling grid, one `grid_sample` per level.
-    pub fn aggregate_tensor_ops(
-        &self,
-        query: Tensor<B, 2>,
-        hits: &ViewHits,
-        feats: &[Tensor<B, 4>],
-        strides: &[usize],
-        gate: Option<Tensor<B, 1>>,
-    ) -> Result<Tensor<B, 2>, ModelError> {
-        if let Some(zeros) = self.checked_or_zeros(&query, hits, feats, strides)? {
-            return Ok(zeros);
-        }
-        let device = query.device();
-        let [n, d] = query.dims();
-        let (m, p) = (self.num_heads, self.num_points);
-        let dh = d / m;
-        let nh = hits.len();
-        let (offsets, weights) = self.sampling(query);
-        let qidx = int_tensor::<B>(&hits.query, &device);
-        let off = offsets.select(0, qidx.clone()); // [nh, M, L, P, 2]
-        let wts = weights.select(0, qidx.clone()); // [nh, M, L, P]
-        let pmax = hits.max_per_image;
-        let slot: Vec<u32> = hits
-            .image
-            .iter()
-            .zip(&hits.slot)
-            .map(|(&i, &s)| i * pmax as u32 + s)
-            .collect();
-        let slot = int_tensor::<B>(&slot, &device);
-        let mut acc: Option<Tensor<B, 3>> = None;
-        for (lvl, (f, &stride)) in feats.iter().zip(strides).enumerate() {
-            let [bv, _, fh, fw] = f.dims();
-            // Reference points, normalised for align_corners = false.
-            let sx = 2.0 / (stride as f64 * fw as f64);
-            let sy = 2.0 / (stride as f64 * fh as f64);
-            let refs: Vec<f64> = hits
-                .uv
-                .iter()
-                .flat_map(|&[u, v]| [(u + 0.5) * sx - 1.0, (v + 0.5) * sy - 1.0])
-                .collect();
-            let refs = Tensor::<B, 4>::from_data(TensorData::new(refs, [nh, 1, 1, 2]), &device);
-            let scale = Tensor::<B, 4>::from_data(
-                TensorData::new(vec![2.0 / fw as f64, 2.0 / fh as f64], [1, 1, 1, 2]),
-                &device,
-            );
-            let off_l = off.clone().narrow(2, lvl, 1).reshape([nh, m, p, 2]);
-            let loc = off_l * scale + refs; // [nh, M, P, 2]
-            let grid = Tensor::<B, 4>::zeros([bv * pmax, m, p, 2], &device)
-                .select_assign(0, slot.clone(), loc, IndexingUpdateOp::Add)
-                .reshape([bv, pmax, m, p, 2])
-                .permute([0, 2, 1, 3, 4])
-                .reshape([bv * m, pmax, p, 2]);
-            let values = self.project_values(f.clone());
-            let sampled = bilinear_sample(values, grid) // [bv*M, dh, pmax, P]
-                .reshape([bv, m, dh, pmax, p])
-                .permute([0, 3, 1, 4, 2])
-                .reshape([bv * pmax, m, p, dh])
-                .select(0, slot.clone()); // [nh, M, P, dh]
-            let w_l = wts.clone().narrow(2, lvl, 1).reshape([nh, m, p, 1]);
-            let contrib = (sampled * w_l).sum_dim(2).reshape([nh, m, dh]);
-            acc = Some(match acc {
-                Some(a) => a + contrib,
-                None => contrib,
-            });
-        }
-        let mut per_hit = acc
-            .unwrap_or_else(|| Tensor::zeros([nh, m, dh], &device))
-            .reshape([nh, d]);
-        if let Some(g) = gate {
-            per_hit = per_hit * g.reshape([nh, 1]);
-        }
-        let inv: Vec<f64> = hits
-            .views_per_query
-            .iter()
-            .map(|&c| if c == 0 { 0.0 } else { 1.0 / c as f64 })
-            .collect();
-        let inv = Tensor::<B, 2>::from_data(TensorData::new(inv, [n, 1]), &device);
-        Ok(Tensor::<B, 2>::zeros([n, d], &device).select_assign(
-            0,
-            qidx,
-            per_hit,
-            IndexingUpdateOp::Add,
-        ) * inv)
+        Ok(B::dca_sample(self.sample_inputs(inputs)))
     }
 
     /// The full block: `x = LN(feats + W_o·DCA(feats + pos))`, `x = LN(x + FFN(x))`.
@@ -684,7 +513,13 @@ impl<B: Backend> DeformableCrossAttention<B> {
         strides: &[usize],
         gate: Option<Tensor<B, 1>>,
     ) -> Result<Tensor<B, 2>, ModelError> {
-        let attn = self.aggregate_gated(feats.clone() + pos, hits, images, strides, gate)?;
+        let attn = self.aggregate_gated(DcaInputs {
+            query: feats.clone() + pos,
+            hits,
+            feats: images,
+            strides,
+            gate,
+        })?;
         crate::profile::trace_mark("dca sampling", &attn);
         let x = self
             .norm1
@@ -700,6 +535,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sample::bilinear_sample;
     type B64 = burn::backend::NdArray<f64>;
 
     /// The MACs one DCA block counts, against a hand count: D = 8, C = 4, M = 2 heads, L = 2 levels,

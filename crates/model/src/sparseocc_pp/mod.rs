@@ -22,6 +22,7 @@ pub mod unet;
 
 use crate::batch::Batch;
 use crate::error::ModelError;
+use crate::kernels::ModelBackend;
 use crate::loss::{ce::cross_entropy, occ_loss};
 use crate::output::ModelOutput;
 use crate::sparseocc_pp::anchors::{column_floor_z_m, combined_gate};
@@ -44,7 +45,7 @@ use crate::sparseocc_pp::unet::{SparseUNet, SparseUNetConfig};
 use crate::targets::downsample_labels;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
-use occ_sparse::{Coord, SparseConvBackend};
+use occ_sparse::Coord;
 
 /// Resolution of the final logits.
 #[derive(Config, Debug, Copy, PartialEq, Eq)]
@@ -247,7 +248,7 @@ impl SparseOccPPConfig {
 
     /// Initialises the model. Never panics on a bad configuration: [`SparseOccPP::forward`] validates
     /// it first (use [`SparseOccPPConfig::try_init`] to fail early).
-    pub fn init<B: SparseConvBackend>(&self, device: &B::Device) -> SparseOccPP<B> {
+    pub fn init<B: ModelBackend>(&self, device: &B::Device) -> SparseOccPP<B> {
         let unet = self.unet_config();
         let c0 = unet.channels.first().copied().unwrap_or(1).max(1);
         SparseOccPP {
@@ -271,7 +272,7 @@ impl SparseOccPPConfig {
     }
 
     /// Validates, then initialises.
-    pub fn try_init<B: SparseConvBackend>(
+    pub fn try_init<B: ModelBackend>(
         &self,
         device: &B::Device,
     ) -> Result<SparseOccPP<B>, ModelError> {
@@ -324,7 +325,7 @@ pub struct PPOutput<B: Backend> {
     pub sem2d: Option<Sem2dMap<B>>,
 }
 
-impl<B: SparseConvBackend> SparseOccPP<B> {
+impl<B: ModelBackend> SparseOccPP<B> {
     /// The configuration the model was built from.
     pub fn config(&self) -> &SparseOccPPConfig {
         &self.config

@@ -94,7 +94,7 @@ fn resnet_for<Be: Backend>(case: &Value) -> ResNet<Be> {
 }
 
 /// Loads `weights` into a fresh backbone and checks every run's four stages.
-fn check_case<Be: Backend>(case: &Value, weights: &str) -> f64 {
+fn check_case<Be: occ_model::ModelBackend>(case: &Value, weights: &str) -> f64 {
     let mut net = resnet_for::<Be>(case);
     let path = data_dir().join(weights);
     let report =

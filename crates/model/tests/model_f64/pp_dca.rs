@@ -6,7 +6,7 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use occ_geometry::transform_point;
-use occ_model::sparseocc_pp::dca::{project_column_bases, project_queries, DcaConfig};
+use occ_model::sparseocc_pp::dca::{project_column_bases, project_queries, DcaConfig, DcaInputs};
 use pp_common::*;
 
 type B64 = burn::backend::NdArray<f64>;
@@ -171,14 +171,15 @@ fn dca_host_loop_equals_tensor_ops() {
         );
         let mut outs = Vec::new();
         for g in [None, Some(gate)] {
-            let host = to_f64(
-                &dca.aggregate_host(query.clone(), &hits, &feats, &STRIDES, g.clone())
-                    .unwrap(),
-            );
-            let ops = to_f64(
-                &dca.aggregate_tensor_ops(query.clone(), &hits, &feats, &STRIDES, g)
-                    .unwrap(),
-            );
+            let inputs = |gate| DcaInputs {
+                query: query.clone(),
+                hits: &hits,
+                feats: &feats,
+                strides: &STRIDES,
+                gate,
+            };
+            let host = to_f64(&dca.aggregate_host(inputs(g.clone())).unwrap());
+            let ops = to_f64(&dca.aggregate_tensor_ops(inputs(g)).unwrap());
             assert_eq!(host.len(), ops.len());
             let mut nonzero = 0;
             for (i, (a, b)) in host.iter().zip(&ops).enumerate() {
@@ -247,10 +248,19 @@ fn dca_host_autodiff_equals_tensor_ops_with_gradients() {
                 feats0.iter().map(|f| f.clone().require_grad()).collect();
             let query = query0.clone().require_grad();
             let gate = gated.then(|| gate0.clone().require_grad());
+            let inputs = DcaInputs {
+                query: query.clone(),
+                hits: &hits,
+                feats: &feats,
+                strides: &STRIDES,
+                gate: gate.clone(),
+            };
+            // The backend's kernel (on `Autodiff<NdArray>` the host op, checked by
+            // `cpu_backends_take_the_host_kernels`) or the tensor-op composition.
             let out = if host {
-                dca.aggregate_host_autodiff(query.clone(), &hits, &feats, &STRIDES, gate.clone())
+                dca.aggregate_gated(inputs)
             } else {
-                dca.aggregate_tensor_ops(query.clone(), &hits, &feats, &STRIDES, gate.clone())
+                dca.aggregate_tensor_ops(inputs)
             }
             .unwrap();
             let grads = (out.clone() * weight0.clone()).sum().backward();

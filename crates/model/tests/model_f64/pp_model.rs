@@ -20,7 +20,7 @@ fn tiny_config() -> SparseOccPPConfig {
         .with_s_max_vertical(2)
 }
 
-fn run<B: occ_sparse::SparseConvBackend>(
+fn run<B: occ_model::ModelBackend>(
     cfg: &SparseOccPPConfig,
     bsz: usize,
     seed: u64,

@@ -99,7 +99,7 @@ pub struct DepthMap<B: Backend> {
     pub dbound: [f64; 3],
 }
 
-impl<B: Backend> DepthGate<B> {
+impl<B: crate::kernels::ModelBackend> DepthGate<B> {
     /// `[d_min, d_max, step]`.
     pub fn dbound(&self) -> [f64; 3] {
         self.dbound

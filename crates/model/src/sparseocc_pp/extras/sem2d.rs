@@ -85,7 +85,7 @@ pub struct Sem2dMap<B: Backend> {
     pub stride: usize,
 }
 
-impl<B: Backend> Sem2dHead<B> {
+impl<B: crate::kernels::ModelBackend> Sem2dHead<B> {
     /// # Shapes
     /// - feat: `[B·V, C, h, w]` → logits `[B·V, K, h, w]`
     pub fn forward(&self, feat: Tensor<B, 4>, stride: usize) -> Sem2dMap<B> {

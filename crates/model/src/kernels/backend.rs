@@ -1,0 +1,125 @@
+//! The model's own compute kernels as a burn backend extension, the way occ-sparse's
+//! [`SparseConvBackend`] is done: a trait whose default methods run the portable burn ops (every
+//! backend, CUDA included), overridden for `NdArray<f32 | f64>` by the host kernels and, through the
+//! inner backend's `*_autodiff` methods, for `Autodiff<NdArray<f32 | f64>>` by autodiff ops with an
+//! explicit backward pass. Model code is generic over `B: ModelBackend` and calls the kernels through
+//! it; nothing checks types at run time.
+//!
+//! | kernel | portable default | `NdArray<T>` | `Autodiff<NdArray<T>, C>` |
+//! |---|---|---|---|
+//! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
+//! | [`ModelBackend::dca_sample`] | [`dca::sample_tensor_ops`] (`grid_sample`) | host loop | host loop as one autodiff op |
+//!
+//! Where a host kernel does not apply (a grouped convolution, tensors whose float type is not the
+//! backend's), the override falls back to the portable path, as the type-checking code before it did.
+
+use crate::kernels::conv2d_host::{bn_relu, conv_autodiff, conv_bn_host, conv_bn_portable};
+use crate::kernels::dca::{self, DcaSample};
+use crate::kernels::dca_host;
+use crate::kernels::host_data::NdElem;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::ndarray::{NdArrayTensor, SharedArray};
+use burn::backend::{Autodiff, NdArray};
+use burn::nn::conv::Conv2d;
+use burn::nn::BatchNorm;
+use burn::tensor::Tensor;
+use occ_sparse::SparseConvBackend;
+
+/// Backends the models run on: sparse convolution ([`SparseConvBackend`]) plus the model's own
+/// kernels, each with a portable default (see the module documentation).
+pub trait ModelBackend: SparseConvBackend {
+    /// `relu?(bn?(conv(x)))`, the image-side convolution with its BatchNorm (see
+    /// [`crate::kernels::conv2d_host::conv_bn`], the entry point that also counts the multiply-adds).
+    ///
+    /// # Shapes
+    /// - x: `[N, C_in, H, W]` -> `[N, C_out, H_out, W_out]`
+    fn conv2d_bn(
+        conv: &Conv2d<Self>,
+        bn: Option<&BatchNorm<Self>>,
+        x: Tensor<Self, 4>,
+        apply_relu: bool,
+    ) -> Tensor<Self, 4> {
+        conv_bn_portable(conv, bn, x, apply_relu)
+    }
+
+    /// The DCA sampling step (see [`dca`]).
+    ///
+    /// # Shapes
+    /// see [`DcaSample`]; returns `[N, D]`
+    fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
+        dca::sample_tensor_ops(s)
+    }
+
+    /// `conv.forward(x)` on `Autodiff<Self, C>`, the convolution of
+    /// [`ModelBackend::conv2d_bn`] in training (the BatchNorm and ReLU stay burn's). Default:
+    /// burn's `Conv2d::forward` through burn's autodiff.
+    fn conv2d_autodiff<C: CheckpointStrategy>(
+        conv: &Conv2d<Autodiff<Self, C>>,
+        x: Tensor<Autodiff<Self, C>, 4>,
+    ) -> Tensor<Autodiff<Self, C>, 4> {
+        conv.forward(x)
+    }
+
+    /// [`ModelBackend::dca_sample`] on `Autodiff<Self, C>`. Default: the tensor-op composition
+    /// through burn's autodiff.
+    fn dca_sample_autodiff<C: CheckpointStrategy>(
+        s: DcaSample<'_, Autodiff<Self, C>>,
+    ) -> Tensor<Autodiff<Self, C>, 2> {
+        dca::sample_tensor_ops(s)
+    }
+}
+
+/// The CPU backend: the host kernels, in inference and (through `Autodiff<NdArray<T>>`) in training.
+impl<T: NdElem> ModelBackend for NdArray<T>
+where
+    NdArrayTensor: From<SharedArray<T>>,
+{
+    fn conv2d_bn(
+        conv: &Conv2d<Self>,
+        bn: Option<&BatchNorm<Self>>,
+        x: Tensor<Self, 4>,
+        apply_relu: bool,
+    ) -> Tensor<Self, 4> {
+        match conv_bn_host(conv, bn, &x, apply_relu) {
+            Some(out) => out,
+            None => conv_bn_portable(conv, bn, x, apply_relu),
+        }
+    }
+
+    fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
+        dca_host::sample_host(s).unwrap_or_else(dca::sample_tensor_ops)
+    }
+
+    fn conv2d_autodiff<C: CheckpointStrategy>(
+        conv: &Conv2d<Autodiff<Self, C>>,
+        x: Tensor<Autodiff<Self, C>, 4>,
+    ) -> Tensor<Autodiff<Self, C>, 4> {
+        conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv.forward(x))
+    }
+
+    fn dca_sample_autodiff<C: CheckpointStrategy>(
+        s: DcaSample<'_, Autodiff<Self, C>>,
+    ) -> Tensor<Autodiff<Self, C>, 2> {
+        dca_host::sample_autodiff(s).unwrap_or_else(dca::sample_tensor_ops)
+    }
+}
+
+/// Training: the inner backend's `*_autodiff` kernels.
+impl<B: ModelBackend, C: CheckpointStrategy> ModelBackend for Autodiff<B, C> {
+    fn conv2d_bn(
+        conv: &Conv2d<Self>,
+        bn: Option<&BatchNorm<Self>>,
+        x: Tensor<Self, 4>,
+        apply_relu: bool,
+    ) -> Tensor<Self, 4> {
+        bn_relu(B::conv2d_autodiff(conv, x), bn, apply_relu)
+    }
+
+    fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
+        B::dca_sample_autodiff(s)
+    }
+}
+
+/// CUDA: the portable defaults (burn's ops, run by cubecl kernels).
+#[cfg(feature = "cuda")]
+impl ModelBackend for burn_cuda::Cuda {}

@@ -1,0 +1,169 @@
+//! The sampling step of deformable cross attention ([`crate::sparseocc_pp::dca`]) as an op: its
+//! inputs ([`DcaSample`]: the (query, view) hits, the projected value maps, the predicted offsets and
+//! attention weights, an optional per-hit gate) and its portable form ([`sample_tensor_ops`], burn
+//! tensor ops on any backend, differentiable through burn's autodiff). The CPU backends replace it by
+//! the host loops of [`crate::kernels::dca_host`] through [`crate::kernels::ModelBackend::dca_sample`].
+//!
+//! `out[q] = 1/|V_q| · Σ_{hits h of q} g_h · Σ_{m, l, j} w_{qmlj} · bilinear(values_l[img_h], ref_h/s_l + Δp_{qmlj})[head m]`
+
+use crate::sample::bilinear_sample;
+use burn::prelude::*;
+use burn::tensor::{IndexingUpdateOp, TensorData};
+
+/// Which views see which query: one entry per (query, view) hit, sorted by image then query.
+/// Built by [`crate::sparseocc_pp::dca::project_queries`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ViewHits {
+    /// Number of queries.
+    pub num_queries: usize,
+    /// Number of images `B·V`.
+    pub num_images: usize,
+    /// Query row of each hit.
+    pub query: Vec<u32>,
+    /// Image index `b·V + v` of each hit.
+    pub image: Vec<u32>,
+    /// Slot of each hit among the hits of its image (0-based).
+    pub slot: Vec<u32>,
+    /// Reference point `(u, v)` in network-input pixels.
+    pub uv: Vec<[f64; 2]>,
+    /// Depth of the voxel centre along the view's optical axis, metres.
+    pub depth_m: Vec<f64>,
+    /// Number of views that see each query.
+    pub views_per_query: Vec<u32>,
+    /// Largest number of hits of one image.
+    pub max_per_image: usize,
+}
+
+impl ViewHits {
+    /// Number of (query, view) hits.
+    pub fn len(&self) -> usize {
+        self.query.len()
+    }
+    /// True when no view sees any query.
+    pub fn is_empty(&self) -> bool {
+        self.query.is_empty()
+    }
+}
+
+/// The inputs of the DCA sampling op. Sizes: `N` queries, `M` heads, `L` levels, `P` points per
+/// head and level, width `D` (`D / M` per head), `B·V` images.
+#[derive(Clone, Debug)]
+pub struct DcaSample<'a, B: Backend> {
+    /// Which views see which query, and where (the reference points).
+    pub hits: &'a ViewHits,
+    /// Input pixels per feature pixel of each level (`L`).
+    pub strides: &'a [usize],
+    /// The projected value map of each level, channel-last: `[B·V, h_l, w_l, D]` (`D` head-major).
+    pub values: Vec<Tensor<B, 4>>,
+    /// Sampling offsets `[N, M, L, P, 2]`, `(x, y)` in feature pixels of each level.
+    pub offsets: Tensor<B, 5>,
+    /// Attention weights `[N, M, L, P]`.
+    pub weights: Tensor<B, 4>,
+    /// Per-hit gate `[hits.len()]`; `None` = all ones.
+    pub gate: Option<Tensor<B, 1>>,
+}
+
+impl<B: Backend> DcaSample<'_, B> {
+    /// Heads `M` and points per head and level `P`.
+    pub fn heads_points(&self) -> (usize, usize) {
+        let [_, m, _, p, _] = self.offsets.dims();
+        (m, p)
+    }
+
+    /// Width `D` of the values (and of the output).
+    pub fn width(&self) -> usize {
+        self.values.first().map_or(0, |v| v.dims()[3])
+    }
+}
+
+fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
+    occ_sparse::backend::index_tensor::<B>(v, device)
+}
+
+/// The sampling composed of burn tensor ops (differentiable; any backend): the hits are laid out per
+/// image in a padded sampling grid, one `grid_sample` per level, weighted, summed over the levels,
+/// gated, scattered onto their queries and divided by each query's number of views.
+///
+/// # Shapes
+/// see [`DcaSample`]; returns `[N, D]`
+pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
+    let (m, p) = s.heads_points();
+    let d = s.width();
+    let DcaSample {
+        hits,
+        strides,
+        values,
+        offsets,
+        weights,
+        gate,
+    } = s;
+    let device = offsets.device();
+    let n = offsets.dims()[0];
+    let dh = d / m;
+    let nh = hits.len();
+    let qidx = int_tensor::<B>(&hits.query, &device);
+    let off = offsets.select(0, qidx.clone()); // [nh, M, L, P, 2]
+    let wts = weights.select(0, qidx.clone()); // [nh, M, L, P]
+    let pmax = hits.max_per_image;
+    let slot: Vec<u32> = hits
+        .image
+        .iter()
+        .zip(&hits.slot)
+        .map(|(&i, &s)| i * pmax as u32 + s)
+        .collect();
+    let slot = int_tensor::<B>(&slot, &device);
+    let mut acc: Option<Tensor<B, 3>> = None;
+    for (lvl, (v, &stride)) in values.into_iter().zip(strides).enumerate() {
+        let [bv, fh, fw, _] = v.dims();
+        // Reference points, normalised for align_corners = false.
+        let sx = 2.0 / (stride as f64 * fw as f64);
+        let sy = 2.0 / (stride as f64 * fh as f64);
+        let refs: Vec<f64> = hits
+            .uv
+            .iter()
+            .flat_map(|&[u, v]| [(u + 0.5) * sx - 1.0, (v + 0.5) * sy - 1.0])
+            .collect();
+        let refs = Tensor::<B, 4>::from_data(TensorData::new(refs, [nh, 1, 1, 2]), &device);
+        let scale = Tensor::<B, 4>::from_data(
+            TensorData::new(vec![2.0 / fw as f64, 2.0 / fh as f64], [1, 1, 1, 2]),
+            &device,
+        );
+        let off_l = off.clone().narrow(2, lvl, 1).reshape([nh, m, p, 2]);
+        let loc = off_l * scale + refs; // [nh, M, P, 2]
+        let grid = Tensor::<B, 4>::zeros([bv * pmax, m, p, 2], &device)
+            .select_assign(0, slot.clone(), loc, IndexingUpdateOp::Add)
+            .reshape([bv, pmax, m, p, 2])
+            .permute([0, 2, 1, 3, 4])
+            .reshape([bv * m, pmax, p, 2]);
+        // [B·V, h, w, D] -> [B·V·M, D/M, h, w] (head-major per image).
+        let maps = v
+            .reshape([bv, fh, fw, m, dh])
+            .permute([0, 3, 4, 1, 2])
+            .reshape([bv * m, dh, fh, fw]);
+        let sampled = bilinear_sample(maps, grid) // [bv*M, dh, pmax, P]
+            .reshape([bv, m, dh, pmax, p])
+            .permute([0, 3, 1, 4, 2])
+            .reshape([bv * pmax, m, p, dh])
+            .select(0, slot.clone()); // [nh, M, P, dh]
+        let w_l = wts.clone().narrow(2, lvl, 1).reshape([nh, m, p, 1]);
+        let contrib = (sampled * w_l).sum_dim(2).reshape([nh, m, dh]);
+        acc = Some(match acc {
+            Some(a) => a + contrib,
+            None => contrib,
+        });
+    }
+    let mut per_hit = acc
+        .unwrap_or_else(|| Tensor::zeros([nh, m, dh], &device))
+        .reshape([nh, d]);
+    if let Some(g) = gate {
+        per_hit = per_hit * g.reshape([nh, 1]);
+    }
+    let inv: Vec<f64> = hits
+        .views_per_query
+        .iter()
+        .map(|&c| if c == 0 { 0.0 } else { 1.0 / c as f64 })
+        .collect();
+    let inv = Tensor::<B, 2>::from_data(TensorData::new(inv, [n, 1]), &device);
+    Tensor::<B, 2>::zeros([n, d], &device).select_assign(0, qidx, per_hit, IndexingUpdateOp::Add)
+        * inv
+}
