@@ -228,7 +228,7 @@ pub fn sample_from_image(
 /// frame stem, or sample token) below `root`, in the layout `data.format`, with the LiDAR points
 /// loaded when the model needs them at test time. The dataset's grid must be the model's.
 #[allow(clippy::too_many_arguments)]
-pub fn predict_dataset_frame<B: SparseConvBackend>(
+pub fn predict_dataset_frame<B: ModelBackend>(
     model: &OccNet<B>,
     data: &crate::config::DataConfig,
     needs_points: bool,
