@@ -482,13 +482,7 @@ fn conv3d<'py>(
         stride: stride.get(),
         padding: padding.get(),
         dilation: dilation.get(),
-        kind: if subm {
-            ArrayConvKind::Submanifold
-        } else if transposed {
-            ArrayConvKind::Transposed
-        } else {
-            ArrayConvKind::Regular
-        },
+        kind: ArrayConvKind::from_flags(subm, transposed),
         batch_size,
     };
     let out = py
@@ -511,6 +505,19 @@ struct Model {
 }
 
 impl Model {
+    /// A prediction's classes as an `[X, Y, Z]` uint8 array.
+    fn classes_array<'py>(
+        &self,
+        py: Python<'py>,
+        pred: occ_train::infer::Prediction,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        Ok(pred
+            .classes
+            .into_pyarray(py)
+            .reshape(self.grid.dims)?
+            .into_any())
+    }
+
     /// Runs `f` on the network (one prediction at a time: the network is behind a mutex).
     fn with_net<R>(
         &self,
@@ -609,11 +616,7 @@ impl Model {
                 })
             })
             .map_err(lib_err)?;
-        Ok(pred
-            .classes
-            .into_pyarray(py)
-            .reshape(self.grid.dims)?
-            .into_any())
+        self.classes_array(py, pred)
     }
 
     /// One frame of a dataset folder (the run's data layout) -> classes `[X, Y, Z]` uint8.
@@ -645,11 +648,7 @@ impl Model {
                 })
             })
             .map_err(lib_err)?;
-        Ok(pred
-            .classes
-            .into_pyarray(py)
-            .reshape(self.grid.dims)?
-            .into_any())
+        self.classes_array(py, pred)
     }
 
     /// The grid the model predicts, `(X, Y, Z)`.

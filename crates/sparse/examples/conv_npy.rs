@@ -143,13 +143,7 @@ fn run() -> Result<(), String> {
         stride,
         padding,
         dilation,
-        kind: if subm {
-            ArrayConvKind::Submanifold
-        } else if transposed {
-            ArrayConvKind::Transposed
-        } else {
-            ArrayConvKind::Regular
-        },
+        kind: ArrayConvKind::from_flags(subm, transposed),
         batch_size: batch,
     };
     // Each repeat builds the kernel map on a fresh coordinate set (nothing cached) and computes.

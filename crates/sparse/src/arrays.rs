@@ -27,6 +27,17 @@ pub enum ArrayConvKind {
     Transposed,
 }
 
+impl ArrayConvKind {
+    /// spconv's flags: `subm` (submanifold) wins over `transposed`; neither is regular.
+    pub fn from_flags(subm: bool, transposed: bool) -> Self {
+        match (subm, transposed) {
+            (true, _) => ArrayConvKind::Submanifold,
+            (false, true) => ArrayConvKind::Transposed,
+            (false, false) => ArrayConvKind::Regular,
+        }
+    }
+}
+
 /// The geometry of one [`conv3d_arrays`] call.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ArrayConvSpec {
