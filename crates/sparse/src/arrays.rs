@@ -2,19 +2,17 @@
 //! Python package's `sparseocc.sparse.conv3d`, the `conv_npy` example).
 //!
 //! The input is validated as [`CoordSet::new`] validates it (every site inside the batch and spatial
-//! shape, no duplicates); the kernel map is built on a fresh coordinate set and the features are
-//! computed on the CPU backend (`NdArray<f32>`, the fast host path of [`crate::backend`]).
+//! shape, no duplicates) and put in (b, x, y, z) order; the kernel map is built on a fresh coordinate
+//! set and the features are computed by the host kernels of [`crate::host`] straight on the slices
+//! (no tensors, no copies of the output).
 
-use crate::backend::sparse_conv;
+use crate::coords::{pack, validate_sorted_order};
+use crate::host::{conv_forward, WeightView};
 use crate::kernel_map::{conv_map, ConvGeometry, MapKind};
-use crate::{Coord, CoordSet, Result, SparseError, SparseTensor};
-use burn::backend::NdArray;
-use burn::prelude::*;
-use burn::tensor::TensorData;
+use crate::{Coord, CoordSet, Result, SparseError};
+use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
-
-type Cpu = NdArray<f32>;
 
 /// Which convolution [`conv3d_arrays`] runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -141,26 +139,45 @@ pub fn conv3d_arrays(
             output_padding: [0; 3],
         },
     };
-    let set = Arc::new(CoordSet::new(coords, spec.spatial_shape, batch)?);
+    // Validation sorts the rows: every map built on sorted input sites yields sorted output sites
+    // (submanifold keeps them; regular and transposed number their outputs in key order), so the
+    // output needs no sort and no gather.
+    let (coords, x) = match validate_sorted_order(&coords, spec.spatial_shape, batch)? {
+        None => (coords, Cow::Borrowed(feats)),
+        Some(order) => {
+            let mut x = Vec::with_capacity(n * c_in);
+            for &row in &order {
+                x.extend_from_slice(&feats[row as usize * c_in..][..c_in]);
+            }
+            let sorted = order.iter().map(|&row| coords[row as usize]).collect();
+            (sorted, Cow::Owned(x))
+        }
+    };
+    let set = Arc::new(CoordSet::from_valid_unique(
+        coords,
+        spec.spatial_shape,
+        batch,
+        [1, 1, 1],
+    ));
     let t0 = Instant::now();
     let (out_set, map) = conv_map(&set, kind, geom)?;
     let ms_kernel_map = t0.elapsed().as_secs_f64() * 1e3;
+    debug_assert!(out_set.coords().windows(2).all(|w| pack(w[0]) < pack(w[1])));
 
-    let dev = Default::default();
-    let x = Tensor::<Cpu, 2>::from_data(TensorData::new(feats.to_vec(), [n, c_in]), &dev);
-    let w = Tensor::<Cpu, 3>::from_data(TensorData::new(weight.to_vec(), [c_out, kv, c_in]), &dev);
     let t0 = Instant::now();
-    let y = sparse_conv::<Cpu>(x, w, map.clone(), false);
-    let y = y.into_data(); // forces completion
+    let wv = WeightView {
+        d0: c_out,
+        k: kv,
+        d2: c_in,
+        transposed: false,
+    };
+    let feats = conv_forward::<f32>(&x, weight, wv, &map);
     let ms_compute = t0.elapsed().as_secs_f64() * 1e3;
-    let out_spatial_shape = out_set.spatial_shape();
-    let y = Tensor::<Cpu, 2>::from_data(y, &dev);
-    let st = SparseTensor::from_parts(out_set, y)?.sorted();
     Ok(ArrayConvOutput {
-        coords: st.coords().to_vec(),
-        feats: st.feats_to_vec(),
+        coords: out_set.coords().to_vec(),
+        feats,
         c_out,
-        out_spatial_shape,
+        out_spatial_shape: out_set.spatial_shape(),
         pairs: map.num_pairs(),
         ms_kernel_map,
         ms_compute,

@@ -187,32 +187,10 @@ impl CoordSet {
         batch_size: usize,
         tensor_stride: [usize; 3],
     ) -> Result<Self> {
-        if spatial_shape.iter().any(|&s| s == 0 || s > MAX_AXIS_EXTENT) {
-            return Err(SparseError::Config(format!(
-                "spatial shape {spatial_shape:?}: each axis must be in 1..={MAX_AXIS_EXTENT}"
-            )));
-        }
-        if batch_size == 0 || batch_size > MAX_BATCH {
-            return Err(SparseError::Config(format!(
-                "batch size {batch_size}: must be in 1..={MAX_BATCH}"
-            )));
-        }
-        if coords.len() > u32::MAX as usize {
-            return Err(SparseError::Config("more than 2^32 active sites".into()));
-        }
+        check_extents(spatial_shape, batch_size, coords.len())?;
         let mut index = CoordIndex::with_capacity(coords.len());
         for (row, &c) in coords.iter().enumerate() {
-            let in_range = c[0] >= 0
-                && (c[0] as usize) < batch_size
-                && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < spatial_shape[a]);
-            if !in_range {
-                return Err(SparseError::OutOfRange {
-                    row,
-                    coord: c,
-                    shape: spatial_shape,
-                    batch_size,
-                });
-            }
+            check_in_range(row, c, spatial_shape, batch_size)?;
             if let Some(first) = index.insert(pack(c), row as u32) {
                 return Err(SparseError::Duplicate {
                     coord: c,
@@ -349,6 +327,90 @@ impl CoordSet {
     }
 }
 
+/// Checks a grid's extents and a site count against what the packed keys and `u32` rows hold.
+fn check_extents(spatial_shape: [usize; 3], batch_size: usize, n: usize) -> Result<()> {
+    if spatial_shape.iter().any(|&s| s == 0 || s > MAX_AXIS_EXTENT) {
+        return Err(SparseError::Config(format!(
+            "spatial shape {spatial_shape:?}: each axis must be in 1..={MAX_AXIS_EXTENT}"
+        )));
+    }
+    if batch_size == 0 || batch_size > MAX_BATCH {
+        return Err(SparseError::Config(format!(
+            "batch size {batch_size}: must be in 1..={MAX_BATCH}"
+        )));
+    }
+    if n > u32::MAX as usize {
+        return Err(SparseError::Config("more than 2^32 active sites".into()));
+    }
+    Ok(())
+}
+
+/// Errors unless site `c` (row `row`) lies in `[0, batch_size) x [0, spatial_shape)`.
+#[inline]
+fn check_in_range(
+    row: usize,
+    c: Coord,
+    spatial_shape: [usize; 3],
+    batch_size: usize,
+) -> Result<()> {
+    let in_range = c[0] >= 0
+        && (c[0] as usize) < batch_size
+        && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < spatial_shape[a]);
+    if in_range {
+        Ok(())
+    } else {
+        Err(SparseError::OutOfRange {
+            row,
+            coord: c,
+            shape: spatial_shape,
+            batch_size,
+        })
+    }
+}
+
+/// Validates a coordinate list as [`CoordSet::new`] does (every site inside the grid and the batch,
+/// no duplicates) by sorting instead of hashing, and returns the permutation that puts the rows in
+/// (b, x, y, z) order: `None` when they already are (then no copy is needed).
+///
+/// A duplicate is reported as [`CoordSet::new`] reports it: the pair whose second row comes first.
+pub fn validate_sorted_order(
+    coords: &[Coord],
+    spatial_shape: [usize; 3],
+    batch_size: usize,
+) -> Result<Option<Vec<u32>>> {
+    check_extents(spatial_shape, batch_size, coords.len())?;
+    let mut keys = Vec::with_capacity(coords.len());
+    for (row, &c) in coords.iter().enumerate() {
+        check_in_range(row, c, spatial_shape, batch_size)?;
+        keys.push(pack(c));
+    }
+    if keys.windows(2).all(|w| w[0] < w[1]) {
+        return Ok(None);
+    }
+    // (key, row) in one u128: one sort orders by key, and by row among equal keys.
+    let mut tagged: Vec<u128> = keys
+        .iter()
+        .enumerate()
+        .map(|(row, &k)| ((k as u128) << 32) | row as u128)
+        .collect();
+    tagged.sort_unstable();
+    let row_of = |t: u128| (t & 0xFFFF_FFFF) as usize;
+    let duplicate = tagged
+        .windows(2)
+        .filter(|w| w[0] >> 32 == w[1] >> 32)
+        .min_by_key(|w| row_of(w[1]));
+    if let Some(w) = duplicate {
+        // rows ascend within a key's group, so the window with the group's smallest second row
+        // starts at the group's first row
+        return Err(SparseError::Duplicate {
+            coord: unpack((w[0] >> 32) as u64),
+            first: row_of(w[0]),
+            second: row_of(w[1]),
+        });
+    }
+    Ok(Some(tagged.into_iter().map(|t| row_of(t) as u32).collect()))
+}
+
 /// Sorts and deduplicates packed keys and returns the coordinates (internal helper).
 pub(crate) fn unique_sorted(mut keys: Vec<u64>) -> Vec<Coord> {
     keys.sort_unstable();
@@ -423,5 +485,38 @@ mod tests {
         let e = CoordSet::new(vec![[0, -1, 1, 1]], [4, 4, 4], 1).unwrap_err();
         assert!(matches!(e, SparseError::OutOfRange { .. }));
         assert!(CoordSet::new(vec![], [0, 4, 4], 1).is_err());
+    }
+
+    /// The sorting validation accepts and refuses what `CoordSet::new` does, reports a duplicate
+    /// as it does (the pair whose second row comes first), and sorts.
+    #[test]
+    fn validate_sorted_order_agrees_with_coordset_new() {
+        let sorted = vec![[0, 0, 1, 1], [0, 1, 0, 0], [1, 0, 0, 0]];
+        assert_eq!(validate_sorted_order(&sorted, [4, 4, 4], 2).unwrap(), None);
+        let shuffled = vec![[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1]];
+        assert_eq!(
+            validate_sorted_order(&shuffled, [4, 4, 4], 2).unwrap(),
+            Some(vec![2, 1, 0])
+        );
+        let bad: [Vec<Coord>; 4] = [
+            vec![[0, 1, 1, 1], [0, 4, 0, 0]],
+            vec![[1, 1, 1, 1]],
+            vec![[0, -1, 1, 1]],
+            // two duplicated sites; the one whose repeat comes first (rows 0 and 2) is reported
+            vec![
+                [0, 2, 2, 2],
+                [0, 3, 3, 3],
+                [0, 2, 2, 2],
+                [0, 3, 3, 3],
+                [0, 2, 2, 2],
+            ],
+        ];
+        for coords in bad {
+            let a = validate_sorted_order(&coords, [4, 4, 4], 1).unwrap_err();
+            let b = CoordSet::new(coords.clone(), [4, 4, 4], 1).unwrap_err();
+            assert_eq!(a.to_string(), b.to_string(), "{coords:?}");
+        }
+        assert!(validate_sorted_order(&[], [0, 4, 4], 1).is_err());
+        assert!(validate_sorted_order(&[], [4, 4, 4], 0).is_err());
     }
 }

@@ -11,7 +11,8 @@
 //! the weight slice fits the L1 cache ([`available`]); otherwise the blocked GEMM path runs. Both
 //! compute the same sums (in a different order).
 
-use crate::host::OffsetPairs;
+use crate::host::{OffsetPairs, OutputRows};
+use std::mem::MaybeUninit;
 
 /// Weight slices packed per kernel offset as `[K][C_in][C_out]` (row-major over `C_out`).
 pub(crate) fn pack_weight(w: &[f32], wv: crate::host::WeightView) -> Vec<f32> {
@@ -134,5 +135,91 @@ unsafe fn pairs_avx2<const R: usize, const T: usize>(
             }
         }
         p += 1;
+    }
+}
+
+/// `y[o] = Σ x[i] · w_k` over the pairs `(i, k)` of each output row `o` of one block, output-major:
+/// each row is summed in registers and written once (zeros where a row has no pair), so the output
+/// needs no zeroing and no read-modify-write per pair (see [`crate::host::conv_forward`]).
+///
+/// # Safety
+/// [`available`]`(cin, cout)` must hold; the slices as documented on [`OutputRows`].
+pub(crate) unsafe fn rows_by_output(job: &OutputRows<'_, f32>, yblock: &mut [MaybeUninit<f32>]) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: the caller checked the CPU features through `available`; `cout` is a multiple of 16.
+    unsafe {
+        if job.cout.is_multiple_of(64) {
+            rows_avx2::<64, 1>(job, yblock)
+        } else if job.cout.is_multiple_of(32) {
+            rows_avx2::<32, 2>(job, yblock)
+        } else {
+            rows_avx2::<16, 4>(job, yblock)
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (job, yblock);
+        unreachable!("fused::available is false off x86-64")
+    }
+}
+
+/// `T` output channels per tile, the input channels split `U` ways: `T / 8 · U` = 8 independent
+/// accumulator vectors, enough to hide the FMA latency at every tile width.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn rows_avx2<const T: usize, const U: usize>(
+    job: &OutputRows<'_, f32>,
+    yblock: &mut [MaybeUninit<f32>],
+) {
+    let OutputRows {
+        x,
+        cin,
+        packed,
+        cout,
+        pairs,
+        o0,
+    } = *job;
+    let rows = yblock.len() / cout;
+    for r in 0..rows {
+        let o = o0 + r;
+        let (s, e) = (pairs.start[o] as usize, pairs.start[o + 1] as usize);
+        for ct in (0..cout).step_by(T) {
+            let mut tot = [0.0f32; T];
+            for p in s..e {
+                let i = pairs.ins[p] as usize;
+                let xr = &x[i * cin..(i + 1) * cin];
+                let wk = &packed[pairs.offsets[p] as usize * cin * cout..][..cin * cout];
+                let mut acc = [[0.0f32; T]; U];
+                let mut c = 0;
+                while c + U <= cin {
+                    for (u, acc) in acc.iter_mut().enumerate() {
+                        let xv = xr[c + u];
+                        let w: &[f32; T] = wk[(c + u) * cout + ct..][..T]
+                            .try_into()
+                            .expect("tile of T");
+                        for j in 0..T {
+                            acc[j] = xv.mul_add(w[j], acc[j]);
+                        }
+                    }
+                    c += U;
+                }
+                while c < cin {
+                    let xv = xr[c];
+                    let w: &[f32; T] = wk[c * cout + ct..][..T].try_into().expect("tile of T");
+                    for j in 0..T {
+                        acc[0][j] = xv.mul_add(w[j], acc[0][j]);
+                    }
+                    c += 1;
+                }
+                for a in &acc {
+                    for j in 0..T {
+                        tot[j] += a[j];
+                    }
+                }
+            }
+            for (d, v) in yblock[r * cout + ct..][..T].iter_mut().zip(tot) {
+                d.write(v);
+            }
+        }
     }
 }

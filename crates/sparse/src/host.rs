@@ -6,8 +6,9 @@
 //! weight slice with `matrixmultiply`'s GEMM, and added into the block. The weight is read in place
 //! through strides (no transposed copy).
 
-use crate::kernel_map::KernelMap;
+use crate::kernel_map::{KernelMap, OutputPairs};
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Float types the host path computes in.
 pub trait HostFloat: Copy + Send + Sync + Default + std::ops::AddAssign + 'static {
@@ -47,6 +48,13 @@ pub trait HostFloat: Copy + Send + Sync + Default + std::ops::AddAssign + 'stati
     unsafe fn fused_pairs(_pairs: &OffsetPairs<'_, Self>, _yblock: &mut [Self]) {
         unreachable!("no fused kernel for this type")
     }
+    /// Writes every row of an output block, output-major (see [`crate::fused`]).
+    ///
+    /// # Safety
+    /// Only after [`HostFloat::fused_plan`] returned `Some`; slices as documented on [`OutputRows`].
+    unsafe fn fused_rows(_job: &OutputRows<'_, Self>, _yblock: &mut [MaybeUninit<Self>]) {
+        unreachable!("no fused kernel for this type")
+    }
 }
 
 impl HostFloat for f32 {
@@ -79,6 +87,10 @@ impl HostFloat for f32 {
     unsafe fn fused_pairs(pairs: &OffsetPairs<'_, f32>, yblock: &mut [f32]) {
         // SAFETY: forwarded contract.
         unsafe { crate::fused::pairs_into_block(pairs, yblock) }
+    }
+    unsafe fn fused_rows(job: &OutputRows<'_, f32>, yblock: &mut [MaybeUninit<f32>]) {
+        // SAFETY: forwarded contract.
+        unsafe { crate::fused::rows_by_output(job, yblock) }
     }
 }
 
@@ -125,6 +137,23 @@ pub struct OffsetPairs<'a, F> {
     pub outs: &'a [u32],
     /// First output row of the block.
     pub o0: u32,
+}
+
+/// One block of output rows for the output-major kernel.
+#[derive(Clone, Copy, Debug)]
+pub struct OutputRows<'a, F> {
+    /// Input features `[n_in, cin]`, row-major, covering every input row of `pairs`.
+    pub x: &'a [F],
+    /// Input channels.
+    pub cin: usize,
+    /// The weight packed `[K][cin][cout]` by [`HostFloat::fused_plan`].
+    pub packed: &'a [F],
+    /// Output channels.
+    pub cout: usize,
+    /// The map's pairs by output row; the block's rows are `o0..o0 + block.len() / cout`.
+    pub pairs: &'a OutputPairs,
+    /// First output row of the block.
+    pub o0: usize,
 }
 
 /// How the weight `[D0, K, D2]` is applied.
@@ -180,13 +209,33 @@ fn block_rows(n_out: usize, cout: usize) -> usize {
     by_cache.min(by_balance).min(1024)
 }
 
+/// Maps with at most 2.5 pairs per output row on average (this fraction) take the output-major
+/// kernel: their outputs have one or two pairs each (e.g. a regular convolution of scattered
+/// sites), and the offset-major path's zeroing and per-pair read-modify-write of the output
+/// dominate. Above it the offset-major kernel's weight reuse (four pairs of one offset per register
+/// tile) wins. Measured on the spconv comparison's 18 cases (BENCHMARKS.md, 2026-12-02): at 1.0-2.5
+/// pairs per row output-major was faster in 10 of 12 (up to 1.7x) and 1.1-1.4x slower in two with
+/// `C_in > C_out`; at 3.5-9.9 it was 1.0-1.9x slower in all 6.
+const BY_OUTPUT_MAX_PAIRS_PER_ROW: (usize, usize) = (5, 2);
+
+/// Whether [`conv_forward`] runs `map` output-major (where the fused kernels exist).
+fn by_output_pays(map: &KernelMap) -> bool {
+    let (num, den) = BY_OUTPUT_MAX_PAIRS_PER_ROW;
+    map.num_pairs().saturating_mul(den) <= map.n_out().saturating_mul(num)
+}
+
 /// `y = conv(x, w)` over `map` on the host. `x` is `[n_in, cin]` row-major; returns `[n_out, cout]`.
 ///
-/// Offsets whose pairs are not the identity go through the fused gather-multiply-scatter kernel
-/// ([`crate::fused`]) where it exists (f32, AVX2 + FMA, `C_out` a multiple of 16, `C_in·C_out` ≤ 8192),
-/// else through a gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
+/// Where the fused kernels exist ([`crate::fused`]: f32, AVX2 + FMA, `C_out` a multiple of 16,
+/// `C_in·C_out` ≤ 8192), a map with few pairs per output row runs output-major
+/// ([`conv_forward_by_output`]), others offset-major with the fused gather-multiply-scatter kernel
+/// for every offset whose pairs are not the identity; without them every offset goes through a
+/// gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
 pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &KernelMap) -> Vec<F> {
-    conv_forward_impl(x, w, wv, map, F::fused_plan(w, wv))
+    match F::fused_plan(w, wv) {
+        Some(p) if by_output_pays(map) => forward_by_output(x, &p, wv, map),
+        packed => conv_forward_impl(x, w, wv, map, packed),
+    }
 }
 
 /// [`conv_forward`] without the fused kernel: gather, GEMM, scatter-add for every offset (for
@@ -198,6 +247,63 @@ pub fn conv_forward_gemm<F: HostFloat>(
     map: &KernelMap,
 ) -> Vec<F> {
     conv_forward_impl(x, w, wv, map, None)
+}
+
+/// [`conv_forward`] output-major whatever the map (for tests and A/B benchmarks): each output row
+/// summed over its pairs ([`KernelMap::by_output`]) in registers and written once. `None` where
+/// the fused kernels do not exist for this type, these widths or this CPU.
+pub fn conv_forward_by_output<F: HostFloat>(
+    x: &[F],
+    w: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+) -> Option<Vec<F>> {
+    F::fused_plan(w, wv).map(|p| forward_by_output(x, &p, wv, map))
+}
+
+/// [`conv_forward`] offset-major whatever the map (for tests and A/B benchmarks).
+pub fn conv_forward_by_offset<F: HostFloat>(
+    x: &[F],
+    w: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+) -> Vec<F> {
+    conv_forward_impl(x, w, wv, map, F::fused_plan(w, wv))
+}
+
+fn forward_by_output<F: HostFloat>(
+    x: &[F],
+    packed: &[F],
+    wv: WeightView,
+    map: &KernelMap,
+) -> Vec<F> {
+    let (cin, cout) = (wv.cin(), wv.cout());
+    let n_out = map.n_out();
+    let len = n_out * cout;
+    let mut y: Vec<F> = Vec::with_capacity(len);
+    if len == 0 {
+        return y;
+    }
+    let pairs = map.by_output();
+    let rows = block_rows(n_out, cout);
+    y.spare_capacity_mut()[..len]
+        .par_chunks_mut(rows * cout)
+        .enumerate()
+        .for_each(|(bi, block)| {
+            let job = OutputRows {
+                x,
+                cin,
+                packed,
+                cout,
+                pairs,
+                o0: bi * rows,
+            };
+            // SAFETY: `fused_plan` returned Some; every pair indexes x, the block holds whole rows.
+            unsafe { F::fused_rows(&job, block) };
+        });
+    // SAFETY: every block wrote all of its values.
+    unsafe { y.set_len(len) };
+    y
 }
 
 fn conv_forward_impl<F: HostFloat>(

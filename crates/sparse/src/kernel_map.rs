@@ -158,6 +158,20 @@ pub struct KernelMap {
     build_ms: f64,
     transposed: OnceLock<Arc<KernelMap>>,
     gather_table: OnceLock<Option<Vec<u32>>>,
+    by_output: OnceLock<OutputPairs>,
+}
+
+/// A map's pairs grouped by output row (compressed sparse rows): the pairs of output `o` are
+/// entries `start[o]..start[o + 1]` of `ins` / `offsets`, in ascending kernel offset. The layout of
+/// an output-major compute, which writes each output row once (see [`crate::host`]).
+#[derive(Debug)]
+pub struct OutputPairs {
+    /// `n_out + 1` entry offsets.
+    pub start: Vec<u32>,
+    /// Input row of each entry.
+    pub ins: Vec<u32>,
+    /// Kernel offset of each entry.
+    pub offsets: Vec<u32>,
 }
 
 impl KernelMap {
@@ -193,6 +207,7 @@ impl KernelMap {
             build_ms: 0.0,
             transposed: OnceLock::new(),
             gather_table: OnceLock::new(),
+            by_output: OnceLock::new(),
         })
     }
 
@@ -255,6 +270,37 @@ impl KernelMap {
             .as_deref()
     }
 
+    /// The pairs grouped by output row, in ascending kernel offset within a row (a counting sort
+    /// of the pairs, `O(pairs + n_out)`). Computed once and cached.
+    pub fn by_output(&self) -> &OutputPairs {
+        self.by_output.get_or_init(|| {
+            let mut start = vec![0u32; self.n_out + 1];
+            for &o in &self.out_idx {
+                start[o as usize + 1] += 1;
+            }
+            for o in 0..self.n_out {
+                start[o + 1] += start[o];
+            }
+            let mut next = start.clone();
+            let mut ins = vec![0u32; self.in_idx.len()];
+            let mut offsets = vec![0u32; self.in_idx.len()];
+            for k in 0..self.kernel_volume {
+                let (ki, ko) = self.pairs(k);
+                for (&i, &o) in ki.iter().zip(ko) {
+                    let slot = &mut next[o as usize];
+                    ins[*slot as usize] = i;
+                    offsets[*slot as usize] = k as u32;
+                    *slot += 1;
+                }
+            }
+            OutputPairs {
+                start,
+                ins,
+                offsets,
+            }
+        })
+    }
+
     /// The map with inputs and outputs swapped (same offset numbering), sorted by its new output rows.
     /// Used by gradients and by inverse convolution. Computed once and cached.
     pub fn transposed(&self) -> Arc<KernelMap> {
@@ -284,6 +330,7 @@ impl KernelMap {
                     build_ms: t0.elapsed().as_secs_f64() * 1e3,
                     transposed: OnceLock::new(),
                     gather_table: OnceLock::new(),
+                    by_output: OnceLock::new(),
                 })
             })
             .clone()
@@ -307,11 +354,20 @@ pub(crate) struct ParentLink {
 
 const CHUNK: usize = 2048;
 
-/// A grid of `[B, X, Y, Z]` voxels gets a dense row table (4 bytes per voxel) when it has at most this
-/// many voxels per active site; sparser grids use the hash index. The table then costs at most twice
-/// the hash index's memory (16 bytes per slot at load factor 1/2), so memory stays linear in the
-/// active sites, and a lookup is one load instead of a hash probe.
+/// A grid of `[B, X, Y, Z]` voxels always gets a dense row table (4 bytes per voxel) when it has at
+/// most this many voxels per active site: the table then costs at most twice the hash index's memory
+/// (16 bytes per slot at load factor 1/2), and a lookup is one load instead of a hash probe.
 const DENSE_VOXELS_PER_SITE: usize = 16;
+
+/// A sparser grid still gets the table when filling it costs less than the hash probes it saves
+/// (about [`DENSE_VOXELS_PER_LOOKUP`] voxels of memset and scan per probe, measured on the spconv
+/// comparison's cases: BENCHMARKS.md) and it holds at most this many voxels (16 MiB). Memory stays
+/// linear in the active sites: at most `max(16, DENSE_VOXELS_PER_LOOKUP · K)` voxels per site for a
+/// kernel of volume K, and at most a constant.
+const DENSE_MAX_VOXELS: usize = 1 << 22;
+
+/// Voxels of table that one saved hash probe pays for (see [`DENSE_MAX_VOXELS`]).
+const DENSE_VOXELS_PER_LOOKUP: usize = 8;
 
 /// Row of every voxel of a `[B, X, Y, Z]` grid (`u32::MAX` = inactive): the dense alternative to the
 /// hash index for kernel-map building on well-filled grids.
@@ -322,10 +378,14 @@ struct DenseRows {
 }
 
 impl DenseRows {
-    /// An empty table for the grid, if the grid is small enough for `n_sites` active sites.
-    fn empty(batch: usize, shape: [usize; 3], n_sites: usize) -> Option<Self> {
+    /// An empty table for the grid, if it pays off for `n_sites` active sites and `lookups` lookups
+    /// (see [`DENSE_VOXELS_PER_SITE`] and [`DENSE_MAX_VOXELS`]).
+    fn empty(batch: usize, shape: [usize; 3], n_sites: usize, lookups: usize) -> Option<Self> {
         let volume = shape.iter().try_fold(batch, |acc, &d| acc.checked_mul(d))?;
-        if n_sites == 0 || volume > DENSE_VOXELS_PER_SITE.saturating_mul(n_sites) {
+        let well_filled = volume <= DENSE_VOXELS_PER_SITE.saturating_mul(n_sites);
+        let pays_off =
+            volume <= DENSE_MAX_VOXELS && volume <= DENSE_VOXELS_PER_LOOKUP.saturating_mul(lookups);
+        if n_sites == 0 || !(well_filled || pays_off) {
             return None;
         }
         Some(Self {
@@ -335,9 +395,9 @@ impl DenseRows {
         })
     }
 
-    /// The table of an existing set.
-    fn of_set(set: &CoordSet) -> Option<Self> {
-        let mut t = Self::empty(set.batch_size(), set.spatial_shape(), set.len())?;
+    /// The table of an existing set, if it pays off for `lookups` lookups.
+    fn of_set(set: &CoordSet, lookups: usize) -> Option<Self> {
+        let mut t = Self::empty(set.batch_size(), set.spatial_shape(), set.len(), lookups)?;
         for (row, &c) in set.coords().iter().enumerate() {
             let i = t.lin_unchecked(c);
             t.rows[i] = row as u32;
@@ -400,7 +460,7 @@ fn build_regular_dense(
 ) -> Option<(Vec<Coord>, KernelMap)> {
     let t0 = Instant::now();
     let kv = geom.volume();
-    let mut table = DenseRows::empty(input.batch_size(), out_shape, input.len())?;
+    let mut table = DenseRows::empty(input.batch_size(), out_shape, input.len(), input.len() * kv)?;
     let mut scratch = Vec::new();
     // 1. Mark every reachable output.
     for &c in input.coords() {
@@ -529,7 +589,7 @@ fn build_pairs<F>(
 where
     F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
 {
-    match DenseRows::of_set(input) {
+    match DenseRows::of_set(input, outputs.len() * geom.volume()) {
         Some(table) => build_pairs_with(input.len(), outputs, geom, input_of, |c| table.get(c)),
         None => build_pairs_with(input.len(), outputs, geom, input_of, |c| {
             input.find(c).map(|r| r as u32)
@@ -614,6 +674,7 @@ fn assemble(
         build_ms: t0.elapsed().as_secs_f64() * 1e3,
         transposed: OnceLock::new(),
         gather_table: OnceLock::new(),
+        by_output: OnceLock::new(),
     }
 }
 
@@ -917,11 +978,17 @@ mod tests {
     }
 
     #[test]
-    fn dense_table_only_for_well_filled_grids() {
-        assert!(DenseRows::empty(1, [64, 64, 8], 32_768 / DENSE_VOXELS_PER_SITE).is_some());
-        assert!(DenseRows::empty(1, [64, 64, 8], 32_768 / DENSE_VOXELS_PER_SITE - 1).is_none());
-        assert!(DenseRows::empty(1, [64, 64, 8], 0).is_none());
-        assert!(DenseRows::empty(usize::MAX, [64, 64, 8], 1).is_none());
+    fn dense_table_only_where_it_pays_off() {
+        let n = 32_768 / DENSE_VOXELS_PER_SITE;
+        assert!(DenseRows::empty(1, [64, 64, 8], n, 0).is_some());
+        assert!(DenseRows::empty(1, [64, 64, 8], n - 1, 0).is_none());
+        assert!(DenseRows::empty(1, [64, 64, 8], 0, 0).is_none());
+        assert!(DenseRows::empty(usize::MAX, [64, 64, 8], 1, 1).is_none());
+        // A sparse grid gets the table when the lookups pay for it, up to a bounded size.
+        let lookups = 32_768 / DENSE_VOXELS_PER_LOOKUP;
+        assert!(DenseRows::empty(1, [64, 64, 8], 1, lookups).is_some());
+        assert!(DenseRows::empty(1, [64, 64, 8], 1, lookups - 1).is_none());
+        assert!(DenseRows::empty(1, [1024, 1024, 8], 1, usize::MAX).is_none());
         // Submanifold through the table equals submanifold through the hash.
         let set = random_set(3, [10, 10, 4], 1, 150, false);
         let g = ConvGeometry::new([3, 3, 3]);
@@ -933,7 +1000,7 @@ mod tests {
                 o[3] - 1 + k[2] as i32,
             ])
         };
-        let t = DenseRows::of_set(&set).expect("dense");
+        let t = DenseRows::of_set(&set, 0).expect("dense");
         let a = build_pairs_with(set.len(), set.coords(), &g, half, |c| t.get(c));
         let b = build_pairs_with(set.len(), set.coords(), &g, half, |c| {
             set.find(c).map(|r| r as u32)

@@ -95,10 +95,19 @@ fn brute_force(
 }
 
 fn check(spec: ArrayConvSpec, n: usize, cin: usize, cout: usize, seed: u64) {
+    check_order(spec, n, cin, cout, seed, true)
+}
+
+/// [`check`] with the input rows shuffled or in (b, x, y, z) order.
+fn check_order(spec: ArrayConvSpec, n: usize, cin: usize, cout: usize, seed: u64, shuffle: bool) {
     let mut r = rng(seed);
     let batch = spec.batch_size.unwrap_or(2);
     let mut coords = random_coords(&mut r, spec.spatial_shape, batch, n);
-    coords.shuffle(&mut r);
+    if shuffle {
+        coords.shuffle(&mut r);
+    } else {
+        coords.sort_unstable();
+    }
     let kv: usize = spec.kernel.iter().product();
     let feats = random_vec(&mut r, coords.len() * cin);
     let w = random_vec(&mut r, cout * kv * cin);
@@ -180,6 +189,24 @@ fn regular_and_strided_match_brute_force() {
     let mut dilated = spec(ArrayConvKind::Regular, [3; 3], [1; 3], [2; 3]);
     dilated.dilation = [2; 3];
     check(dilated, 100, 3, 3, 6);
+}
+
+/// Output widths of the fused f32 kernels (multiples of 16), on sparse grids (one or two pairs per
+/// output: the output-major kernel) and a grid too large for a dense row table (the hash path),
+/// with shuffled and sorted input rows.
+#[test]
+fn fused_widths_sparse_grids_and_sorted_inputs_match_brute_force() {
+    let mut sparse = spec(ArrayConvKind::Regular, [3; 3], [1; 3], [1; 3]);
+    sparse.spatial_shape = [40, 40, 12];
+    let mut huge = spec(ArrayConvKind::Regular, [3; 3], [2; 3], [1; 3]);
+    huge.spatial_shape = [600, 600, 20];
+    let mut subm = spec(ArrayConvKind::Submanifold, [3; 3], [1; 3], [0; 3]);
+    subm.spatial_shape = [40, 40, 12];
+    for shuffle in [true, false] {
+        check_order(sparse, 150, 8, 32, 21, shuffle);
+        check_order(huge, 120, 5, 16, 22, shuffle);
+        check_order(subm, 300, 16, 64, 23, shuffle);
+    }
 }
 
 #[test]

@@ -441,10 +441,11 @@ fn layer_with_bias_and_empty_input() {
     assert_eq!(to_vec(out.feats().clone()), b, "zero input gives the bias");
 }
 
-/// The fused f32 gather-multiply-scatter kernel (AVX2 + FMA, `C_out` a multiple of 16) and the
-/// gather/GEMM/scatter path give the f64 result to f32 accuracy on every map kind, for the weight
-/// applied as is (forward) and transposed (input gradient), with remainder pairs (not a multiple of
-/// the 4-pair tile) and C_in not a multiple of 8.
+/// The fused f32 kernels (AVX2 + FMA, `C_out` a multiple of 16: offset-major gather-multiply-scatter
+/// and output-major rows) and the gather/GEMM/scatter path give the f64 result to f32 accuracy on
+/// every map kind, for the weight applied as is (forward) and transposed (input gradient), with
+/// remainder pairs (not a multiple of the 4-pair tile), C_in not a multiple of the split, and every
+/// output tile width (16, 32, 64).
 #[test]
 fn fused_kernel_equals_gemm_path_f32() {
     let mut r = rng(11);
@@ -465,7 +466,13 @@ fn fused_kernel_equals_gemm_path_f32() {
     ] {
         let map = conv_map(&set, kind, g).unwrap().1;
         let kv = g.kernel.iter().product::<usize>();
-        for (cin, cout, transposed) in [(20, 32, false), (32, 48, false), (16, 20, true)] {
+        for (cin, cout, transposed) in [
+            (20, 32, false),
+            (32, 48, false),
+            (16, 20, true),
+            (7, 64, false),
+            (24, 16, true),
+        ] {
             // Weight [d0, K, d2]: not transposed d0 = cout, d2 = cin; transposed d0 = cin, d2 = cout.
             let (d0, d2) = if transposed { (cin, cout) } else { (cout, cin) };
             let wview = host::WeightView {
@@ -479,10 +486,25 @@ fn fused_kernel_equals_gemm_path_f32() {
             let want = host::conv_forward::<f64>(&x64, &w64, wview, &map);
             let x32: Vec<f32> = x64.iter().map(|&v| v as f32).collect();
             let w32: Vec<f32> = w64.iter().map(|&v| v as f32).collect();
+            let by_output = host::conv_forward_by_output::<f32>(&x32, &w32, wview, &map);
+            #[cfg(target_arch = "x86_64")]
+            if cout % 16 == 0
+                && std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
+                assert!(
+                    by_output.is_some(),
+                    "cout {cout}: the fused kernels run here"
+                );
+            }
             for got in [
                 host::conv_forward::<f32>(&x32, &w32, wview, &map),
                 host::conv_forward_gemm::<f32>(&x32, &w32, wview, &map),
-            ] {
+                host::conv_forward_by_offset::<f32>(&x32, &w32, wview, &map),
+            ]
+            .into_iter()
+            .chain(by_output)
+            {
                 let got: Vec<f64> = got.iter().map(|&v| v as f64).collect();
                 let err = max_abs_diff(&got, &want);
                 assert!(
@@ -492,4 +514,50 @@ fn fused_kernel_equals_gemm_path_f32() {
             }
         }
     }
+}
+
+/// The pairs grouped by output row hold every pair once, in ascending offset within a row; the
+/// output-major kernel writes zeros on rows without a pair (the output is not pre-zeroed).
+#[test]
+fn pairs_by_output_and_rows_without_pairs() {
+    // 6 outputs, rows 1 and 4 without a pair; 3 offsets.
+    let pairs = vec![
+        (vec![0, 2], vec![0, 3]),
+        (vec![1], vec![5]),
+        (vec![2, 0, 1], vec![0, 2, 5]),
+    ];
+    let map = KernelMap::from_pairs(3, 6, pairs).unwrap();
+    let by = map.by_output();
+    assert_eq!(by.start, vec![0, 2, 2, 3, 4, 4, 6]);
+    assert_eq!(by.ins, vec![0, 2, 0, 2, 1, 1]);
+    assert_eq!(by.offsets, vec![0, 2, 2, 0, 1, 2]);
+    let (cin, cout) = (3, 16);
+    let wview = host::WeightView {
+        d0: cout,
+        k: 3,
+        d2: cin,
+        transposed: false,
+    };
+    let mut r = rng(5);
+    let x: Vec<f32> = random_vec(&mut r, 3 * cin)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let w: Vec<f32> = random_vec(&mut r, cout * 3 * cin)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let want = host::conv_forward_gemm::<f32>(&x, &w, wview, &map);
+    let Some(got) = host::conv_forward_by_output::<f32>(&x, &w, wview, &map) else {
+        return; // no AVX2 + FMA here: the fused kernels do not run
+    };
+    for o in [1, 4] {
+        assert!(got[o * cout..(o + 1) * cout].iter().all(|&v| v == 0.0));
+    }
+    let err = want
+        .iter()
+        .zip(&got)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(err < 1e-5, "max |diff| {err}");
 }
