@@ -15,13 +15,14 @@
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::ModelBackend;
-use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
+use crate::loss::cross_entropy_weighted;
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
 use crate::targets::{check_input, targets_at};
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
+use occ_labels::IGNORE;
 use occ_sparse::norm::SparseBatchNorm;
 use occ_sparse::{full_grid_coords, SparseConv3d, SparseConv3dConfig, SparseTensor};
 
@@ -209,7 +210,7 @@ impl<B: Backend> DenseOutput<B> {
         let flat: Vec<u8> = labels.into_iter().flatten().collect();
         let mut out = vec![(
             "ce".to_string(),
-            cross_entropy_weighted(self.out.logits.clone(), &flat, class_weights, IGNORE_LABEL)?,
+            cross_entropy_weighted(self.out.logits.clone(), &flat, class_weights, IGNORE)?,
         )];
         if let Some(t) = &self.aux.depth_targets {
             out.push((

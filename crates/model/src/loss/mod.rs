@@ -37,37 +37,7 @@ pub use scal::{geo_scal_loss, geo_scal_loss_probs, sem_scal_loss, sem_scal_loss_
 use crate::error::ModelError;
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
-
-/// Label of voxels that are not supervised (docs/formats.md §2.4-§2.5: invalid / unknown voxels).
-pub const IGNORE_LABEL: u8 = 255;
-
-/// Class index of empty space (docs/formats.md §1).
-pub const EMPTY_CLASS: u8 = 0;
-
-/// SemanticKITTI voxel class frequencies, in class order empty, car, …, traffic-sign (docs/formats.md §2.10,
-/// MonoScene `data/semantic_kitti/params.py`).
-pub const SEMANTIC_KITTI_CLASS_FREQUENCIES: [f64; 20] = [
-    5.41773033e9,
-    1.57835390e7,
-    1.25136e5,
-    1.18809e5,
-    6.46799e5,
-    8.21951e5,
-    2.62978e5,
-    2.83696e5,
-    2.0475e5,
-    6.16887030e7,
-    4.502961e6,
-    4.488365e7,
-    2.269923e6,
-    5.68402180e7,
-    1.57196520e7,
-    1.58442623e8,
-    2.061623e6,
-    3.69705220e7,
-    1.151988e6,
-    3.34146e5,
-];
+use occ_labels::{EMPTY, IGNORE, SEMANTIC_KITTI_CLASS_FREQUENCIES};
 
 /// MonoScene cross-entropy class weights `1 / ln(f + 0.001)` from
 /// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (docs/losses.md §2; `0.0446` for empty … `0.0786` for traffic-sign).
@@ -131,23 +101,23 @@ pub fn occ_loss_weighted<B: Backend>(
     class_weights: &[f64],
     weights: &OccLossWeights,
 ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
-    check_labels(&logits, labels, IGNORE_LABEL, "occ_loss")?;
+    check_labels(&logits, labels, IGNORE, "occ_loss")?;
     let mut out = Vec::with_capacity(4);
     if weights.ce != 0.0 {
-        let l = cross_entropy_weighted(logits.clone(), labels, class_weights, IGNORE_LABEL)?;
+        let l = cross_entropy_weighted(logits.clone(), labels, class_weights, IGNORE)?;
         out.push(("ce".to_string(), l.mul_scalar(weights.ce)));
     }
     let probs = softmax(logits, 1);
     if weights.lovasz != 0.0 {
-        let l = lovasz_softmax(probs.clone(), labels, IGNORE_LABEL)?;
+        let l = lovasz_softmax(probs.clone(), labels, IGNORE)?;
         out.push(("lovasz".to_string(), l.mul_scalar(weights.lovasz)));
     }
     if weights.geo_scal != 0.0 {
-        let l = geo_scal_loss_probs(probs.clone(), labels, EMPTY_CLASS, IGNORE_LABEL)?;
+        let l = geo_scal_loss_probs(probs.clone(), labels, EMPTY, IGNORE)?;
         out.push(("geo_scal".to_string(), l.mul_scalar(weights.geo_scal)));
     }
     if weights.sem_scal != 0.0 {
-        let l = sem_scal_loss_probs(probs, labels, IGNORE_LABEL)?;
+        let l = sem_scal_loss_probs(probs, labels, IGNORE)?;
         out.push(("sem_scal".to_string(), l.mul_scalar(weights.sem_scal)));
     }
     Ok(out)

@@ -35,6 +35,7 @@ use burn::nn::{GroupNorm, GroupNormConfig, LayerNorm, LayerNormConfig, Linear, L
 use burn::prelude::*;
 use burn::tensor::activation::{log_softmax, relu, sigmoid, softmax};
 use burn::tensor::TensorData;
+use occ_labels::IGNORE;
 use occ_sparse::{Coord, SparseTensor};
 use std::collections::HashMap;
 
@@ -761,7 +762,7 @@ impl SplitMix {
 /// `(f_max/f_c)^0.25` frequency weights; Efraimidis–Spirakis keys, seeded by the labels so the draw is
 /// deterministic per frame). Sorted ascending.
 pub fn sample_points(labels: &[u8], class_weights: &[f64], num_points: usize) -> Vec<usize> {
-    let valid: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] != 255).collect();
+    let valid: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] != IGNORE).collect();
     if valid.len() <= num_points {
         return valid;
     }
@@ -829,7 +830,7 @@ impl<B: Backend> HeadOutput<B> {
                     lab.len()
                 )));
             }
-            if let Some(&bad) = lab.iter().find(|&&l| l != 255 && l as usize >= nc) {
+            if let Some(&bad) = lab.iter().find(|&&l| l != IGNORE && l as usize >= nc) {
                 return Err(ModelError::Input(format!(
                     "mask_head.rs: label {bad} >= {nc} classes"
                 )));
@@ -864,7 +865,7 @@ impl<B: Backend> HeadOutput<B> {
                 .map(|v| col_of.get(v).copied().unwrap_or(nk))
                 .collect();
             let mut present = vec![false; nc];
-            for &l in lab.iter().filter(|&&l| l != 255) {
+            for &l in lab.iter().filter(|&&l| l != IGNORE) {
                 present[l as usize] = true;
             }
             let classes: Vec<usize> = (0..nc).filter(|&c| present[c]).collect();

@@ -19,7 +19,7 @@ pub mod pyramid;
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::ModelBackend;
-use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
+use crate::loss::cross_entropy_weighted;
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
 use crate::sparseocc::mask_head::{
@@ -29,6 +29,7 @@ use crate::sparseocc::propagator::{PropagatorConfig, SparseLatentPropagator};
 use crate::sparseocc::pyramid::{PyramidConfig, SparsePyramid};
 use crate::targets::{check_input, targets_at};
 use burn::prelude::*;
+use occ_labels::IGNORE;
 use occ_sparse::Coord;
 
 /// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (docs/reference_models.md §1);
@@ -355,18 +356,13 @@ impl<B: Backend> SoOutput<B> {
                     .get(c[0] as usize)
                     .and_then(|l| l.get((c[1] as usize * dy + c[2] as usize) * dz + c[3] as usize))
                     .copied()
-                    .unwrap_or(255)
+                    .unwrap_or(IGNORE)
             })
             .collect();
         out.push((
             "coarse_ce".to_string(),
-            cross_entropy_weighted(
-                a.coarse_logits.clone(),
-                &site_labels,
-                class_weights,
-                IGNORE_LABEL,
-            )?
-            .mul_scalar(a.coarse_weight),
+            cross_entropy_weighted(a.coarse_logits.clone(), &site_labels, class_weights, IGNORE)?
+                .mul_scalar(a.coarse_weight),
         ));
         Ok(out)
     }

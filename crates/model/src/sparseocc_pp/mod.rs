@@ -42,9 +42,9 @@ use crate::sparseocc_pp::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
 use crate::sparseocc_pp::unet::{SparseUNet, SparseUNetConfig};
-use crate::targets::downsample_labels;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
+use occ_labels::{downsample_monoscene, EMPTY, IGNORE};
 use occ_sparse::Coord;
 
 /// Resolution of the final logits.
@@ -571,18 +571,19 @@ pub fn pp_targets<B: Backend>(
         )));
     }
     let mut cache: Vec<(usize, Vec<Vec<u8>>)> = Vec::new();
-    let mut grids_for = |ds: usize| -> Vec<Vec<u8>> {
+    let mut grids_for = |ds: usize| -> Result<Vec<Vec<u8>>, ModelError> {
         if let Some((_, g)) = cache.iter().find(|(f, _)| *f == ds) {
-            return g.clone();
+            return Ok(g.clone());
         }
-        let g: Vec<Vec<u8>> = target
+        let g = target
             .iter()
-            .map(|t| downsample_labels(t, full_dims, ds))
-            .collect();
+            .map(|t| downsample_monoscene(t, full_dims, ds))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| ModelError::Input(format!("targets: {e}")))?;
         cache.push((ds, g.clone()));
-        g
+        Ok(g)
     };
-    let half = grids_for(2);
+    let half = grids_for(2)?;
     let half_dims = full_dims.map(|d| d / 2);
     let labels = if out.out.upsample == 1 {
         lookup(&out.out.coords, target, full_dims)?
@@ -594,7 +595,7 @@ pub fn pp_targets<B: Backend>(
         let g = if lvl.factor == 2 {
             half.clone()
         } else {
-            grids_for(lvl.factor)
+            grids_for(lvl.factor)?
         };
         anchor_labels.push(lookup(&lvl.coords, &g, lvl.dims)?);
     }
@@ -658,7 +659,7 @@ impl<B: Backend> PPOutput<B> {
                 let labels = if cfg.anchor_unknown_as_empty {
                     unknown_as_empty = labels
                         .iter()
-                        .map(|&l| if l == IGNORE { 0 } else { l })
+                        .map(|&l| if l == IGNORE { EMPTY } else { l })
                         .collect();
                     &unknown_as_empty
                 } else {
@@ -723,8 +724,6 @@ impl<B: Backend> PPOutput<B> {
         Ok(out)
     }
 }
-
-const IGNORE: u8 = 255;
 
 /// Mean `|p − (bin − s_max)|` over the anchors whose bin is not ignored (`p`: `[N, 1]`).
 fn scf_l1<B: Backend>(
