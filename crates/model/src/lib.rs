@@ -57,5 +57,5 @@ pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
 pub use kernels::ModelBackend;
 pub use network::OccNetwork;
-pub use occnet::{load_checked, ModelKind, OccNet, OccNetConfig};
+pub use occnet::{load_checked, ModelKind, Network, NetworkVariant, OccNet, OccNetConfig};
 pub use output::ModelOutput;

@@ -223,6 +223,18 @@ impl SparseOccPPConfig {
         Sem2dHeadConfig::new(self.feat_channels, self.num_classes)
     }
 
+    /// Whether training reads the LiDAR scans: the depth gate, the image semantic head and the two
+    /// oracle diagnostics do.
+    pub fn reads_points_in_training(&self) -> bool {
+        self.depth_gate || self.sem2d_aux || self.depth_oracle || self.scan_oracle
+    }
+
+    /// Whether inference reads the LiDAR scan: only the oracle diagnostics do (they are no
+    /// camera-only models).
+    pub fn reads_points_at_test(&self) -> bool {
+        self.depth_oracle || self.scan_oracle
+    }
+
     /// Checks every size and switch.
     pub fn validate(&self) -> Result<(), ModelError> {
         if self.depth_gate {
