@@ -15,6 +15,7 @@ use crate::kernels::ModelBackend;
 use crate::loss::sparseocc_class_weights;
 use crate::network::OccNetwork;
 use crate::output::ModelOutput;
+use crate::profile::Stage;
 use crate::sparseocc::{SparseOcc, SparseOccConfig};
 use crate::sparseocc_pp::{SparseOccPP, SparseOccPPConfig};
 use burn::prelude::*;
@@ -331,7 +332,7 @@ impl<B: ModelBackend> OccNet<B> {
         crate::profile::start();
         let feats = self.encoder.forward(images);
         if let Some(f) = feats.last() {
-            crate::profile::mark("encoder", f);
+            crate::profile::mark(Stage::Encoder, f);
         }
         let strides = self.encoder.strides();
         let with_loss = batch.target.is_some();

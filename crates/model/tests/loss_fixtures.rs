@@ -219,7 +219,7 @@ fn occ_loss_terms_match_fixture() {
         assert!(
             (got - want).abs() <= 1e-9 * want.abs(),
             "{}: {got} vs {want}",
-            term.0
+            term.0.as_str()
         );
     }
 }

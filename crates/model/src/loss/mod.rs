@@ -24,12 +24,14 @@
 
 pub mod ce;
 pub mod depth;
+pub mod keys;
 pub mod lovasz;
 pub mod mask;
 pub mod scal;
 
 pub use ce::{cross_entropy, cross_entropy_weighted};
 pub use depth::{depth_bce, downsample_depth_min, DepthBinRule, DepthBins};
+pub use keys::{LossKey, MaskTerm, OccTerm};
 pub use lovasz::{lovasz_grad, lovasz_softmax};
 pub use mask::{dice_loss, dice_per_mask, mask_bce, mask_bce_per_mask};
 pub use scal::{geo_scal_loss, geo_scal_loss_probs, sem_scal_loss, sem_scal_loss_probs};
@@ -85,12 +87,12 @@ pub struct OccLossWeights {
 
 /// The occupancy loss `L_occ = L_ce + L_lovasz + L_geo_scal + L_sem_scal` (paper Eq. `loss_occ`,
 /// docs/losses.md §2-§4) with unit weights, on voxel logits `[N, C]` and labels (class 0 empty, 255 ignored).
-/// Returns the named terms `ce`, `lovasz`, `geo_scal`, `sem_scal` (sum them for the total).
+/// Returns the terms ([`OccTerm`]: `ce`, `lovasz`, `geo_scal`, `sem_scal`; sum them for the total).
 pub fn occ_loss<B: Backend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     class_weights: &[f64],
-) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+) -> Result<Vec<(OccTerm, Tensor<B, 1>)>, ModelError> {
     occ_loss_weighted(logits, labels, class_weights, &OccLossWeights::new())
 }
 
@@ -100,25 +102,25 @@ pub fn occ_loss_weighted<B: Backend>(
     labels: &[u8],
     class_weights: &[f64],
     weights: &OccLossWeights,
-) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+) -> Result<Vec<(OccTerm, Tensor<B, 1>)>, ModelError> {
     check_labels(&logits, labels, IGNORE, "occ_loss")?;
     let mut out = Vec::with_capacity(4);
     if weights.ce != 0.0 {
         let l = cross_entropy_weighted(logits.clone(), labels, class_weights, IGNORE)?;
-        out.push(("ce".to_string(), l.mul_scalar(weights.ce)));
+        out.push((OccTerm::Ce, l.mul_scalar(weights.ce)));
     }
     let probs = softmax(logits, 1);
     if weights.lovasz != 0.0 {
         let l = lovasz_softmax(probs.clone(), labels, IGNORE)?;
-        out.push(("lovasz".to_string(), l.mul_scalar(weights.lovasz)));
+        out.push((OccTerm::Lovasz, l.mul_scalar(weights.lovasz)));
     }
     if weights.geo_scal != 0.0 {
         let l = geo_scal_loss_probs(probs.clone(), labels, EMPTY, IGNORE)?;
-        out.push(("geo_scal".to_string(), l.mul_scalar(weights.geo_scal)));
+        out.push((OccTerm::GeoScal, l.mul_scalar(weights.geo_scal)));
     }
     if weights.sem_scal != 0.0 {
         let l = sem_scal_loss_probs(probs, labels, IGNORE)?;
-        out.push(("sem_scal".to_string(), l.mul_scalar(weights.sem_scal)));
+        out.push((OccTerm::SemScal, l.mul_scalar(weights.sem_scal)));
     }
     Ok(out)
 }

@@ -28,6 +28,7 @@
 //!    sites; the model output carries `ln(score)` as logits (same argmax).
 
 use crate::error::ModelError;
+use crate::loss::{LossKey, MaskTerm};
 use crate::sparseocc::hungarian::hungarian;
 use crate::sparseocc::pyramid::parent_coord;
 use burn::module::{Initializer, Param};
@@ -810,7 +811,7 @@ impl<B: Backend> HeadOutput<B> {
         dims: [usize; 3],
         class_weights: &[f64],
         weights: &SetLossWeights,
-    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+    ) -> Result<Vec<(LossKey, Tensor<B, 1>)>, ModelError> {
         let nc = class_weights.len();
         let [dx, dy, dz] = dims;
         let n_pred = self.items.first().map(|i| i.predictions.len()).unwrap_or(0);
@@ -953,14 +954,13 @@ impl<B: Backend> HeadOutput<B> {
         }
         let mut out = Vec::new();
         for (pi, s) in sums.into_iter().enumerate() {
-            let prefix = if pi + 1 == n_pred {
-                String::new()
-            } else {
-                format!("d{pi}.")
-            };
-            for (name, t) in ["mask_cls", "mask_bce", "mask_dice"].iter().zip(s) {
+            let aux = (pi + 1 != n_pred).then_some(pi);
+            for (term, t) in [MaskTerm::Class, MaskTerm::Bce, MaskTerm::Dice]
+                .into_iter()
+                .zip(s)
+            {
                 if let Some(t) = t {
-                    out.push((format!("{prefix}{name}"), t));
+                    out.push((LossKey::Mask { aux, term }, t));
                 }
             }
         }

@@ -104,7 +104,7 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
         }
         let losses = out.losses(&batch, &cfg, &weights).unwrap();
         if step == 0 {
-            let names: Vec<&str> = losses.iter().map(|s| s.0.as_str()).collect();
+            let names: Vec<String> = losses.iter().map(|s| s.0.to_string()).collect();
             for n in [
                 "occ.ce",
                 "occ.lovasz",
@@ -115,7 +115,10 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
                 "scf.planar",
                 "scf.vertical",
             ] {
-                assert!(names.contains(&n), "missing loss {n} in {names:?}");
+                assert!(
+                    names.contains(&n.to_string()),
+                    "missing loss {n} in {names:?}"
+                );
             }
         }
         let loss = losses
