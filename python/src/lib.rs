@@ -16,6 +16,7 @@ use occ_data::labels::LearningMap;
 use occ_data::synthetic::{self, Preset, SynthConfig};
 use occ_eval::{ConfusionMatrix, EvalMask, Evaluator, FolderOptions, Protocol};
 use occ_geometry::VoxelGrid;
+use occ_labels::IGNORE;
 use occ_model::OccNet;
 use occ_sparse::arrays::{conv3d_arrays, ArrayConvKind, ArrayConvSpec};
 use occ_train::RunConfig;
@@ -88,7 +89,7 @@ fn c_order<T: numpy::Element + Copy>(a: &PyReadonlyArrayDyn<'_, T>) -> Vec<T> {
 fn class_bytes(a: &PyReadonlyArrayDyn<'_, i64>) -> Vec<u8> {
     a.as_array()
         .iter()
-        .map(|&v| u8::try_from(v).unwrap_or(255))
+        .map(|&v| u8::try_from(v).unwrap_or(IGNORE))
         .collect()
 }
 
@@ -303,7 +304,7 @@ fn label_values(a: &Bound<'_, PyAny>, learning: bool) -> PyResult<(Vec<u16>, [us
         if let Some((i, &c)) = v
             .iter()
             .enumerate()
-            .find(|(_, &c)| !(0..20).contains(&c) && c != 255)
+            .find(|(_, &c)| !(0..20).contains(&c) && c != i64::from(IGNORE))
         {
             return Err(value_err(format!(
                 "learning class {c} at flat index {i} is not 0..=19 or 255"

@@ -262,8 +262,10 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         ops = occ_model::profile::take_ops();
         occ_model::profile::enable(false);
         let known: f64 = stages.iter().map(|s| s.ms).sum();
-        let mut stages: Vec<(String, f64, u64)> =
-            stages.into_iter().map(|s| (s.name, s.ms, s.macs)).collect();
+        let mut stages: Vec<(String, f64, u64)> = stages
+            .into_iter()
+            .map(|s| (s.stage.as_str().to_string(), s.ms, s.macs))
+            .collect();
         stages.push((
             "other (upload, argmax, grid)".into(),
             t0.elapsed().as_secs_f64() * 1e3 - known,

@@ -2,6 +2,7 @@
 //! (docs/formats.md §2.4 and §2.6).
 
 use crate::error::DataError;
+use occ_labels::{downsample_monoscene, EMPTY, IGNORE};
 
 /// A lookup table from raw 16-bit dataset ids to training classes, and back.
 ///
@@ -73,11 +74,11 @@ impl LearningMap {
             listed[raw as usize] = true;
         }
         for v in lut.iter_mut() {
-            if *v == 0 {
-                *v = 255;
+            if *v == EMPTY {
+                *v = IGNORE;
             }
         }
-        lut[0] = 0;
+        lut[0] = EMPTY;
         let mut inv = [0u16; 256];
         for (c, &raw) in inverse.iter().enumerate().take(256) {
             inv[c] = raw;
@@ -143,86 +144,28 @@ impl LearningMap {
     }
 }
 
-fn check_grid(labels_len: usize, dims: [usize; 3]) -> Result<usize, DataError> {
-    let n = dims[0]
-        .checked_mul(dims[1])
-        .and_then(|v| v.checked_mul(dims[2]))
-        .ok_or_else(|| DataError::InvalidArgument(format!("grid dims {dims:?} overflow")))?;
-    if n != labels_len {
-        return Err(DataError::InvalidArgument(format!(
-            "label grid has {labels_len} values but dims {dims:?} need {n}"
-        )));
-    }
-    Ok(n)
-}
-
-/// Downsample a label grid by `factor` with the MonoScene / SparseOcc / VoxFormer
-/// `_downsample_label` rule (docs/formats.md §2.6), per `factor³` block:
-/// if `n0 + n255 > 0.95·factor³` the label is 0 when `n0 > n255`, else 255 (so a tie gives
-/// 255); otherwise it is the most frequent label in `1..=254`, ties to the smaller id.
+/// Downsample a SemanticKITTI-style label grid by `factor` with the MonoScene / SparseOcc / VoxFormer
+/// `_downsample_label` rule ([`occ_labels::downsample_monoscene`], docs/formats.md §2.6), as the
+/// preprocessing writes the 1/2-resolution labels: every dim must be divisible by `factor`.
 ///
-/// `labels` is flat C order `[x][y][z]`; every dim must be divisible by `factor`.
+/// `labels` is flat C order `[x][y][z]`.
 pub fn downsample_labels(
     labels: &[u8],
     dims: [usize; 3],
     factor: usize,
 ) -> Result<Vec<u8>, DataError> {
-    check_grid(labels.len(), dims)?;
     if factor == 0 || dims.iter().any(|d| d % factor != 0) {
         return Err(DataError::InvalidArgument(format!(
             "dims {dims:?} are not divisible by downsampling factor {factor}"
         )));
     }
-    if factor == 1 {
-        return Ok(labels.to_vec());
-    }
-    let out_dims = [dims[0] / factor, dims[1] / factor, dims[2] / factor];
-    let block = factor * factor * factor;
-    let empty_threshold = 0.95 * block as f64;
-    let mut out = Vec::with_capacity(out_dims[0] * out_dims[1] * out_dims[2]);
-    let mut counts = [0u32; 256];
-    for ox in 0..out_dims[0] {
-        for oy in 0..out_dims[1] {
-            for oz in 0..out_dims[2] {
-                counts.iter_mut().for_each(|c| *c = 0);
-                for x in ox * factor..(ox + 1) * factor {
-                    for y in oy * factor..(oy + 1) * factor {
-                        let base = (x * dims[1] + y) * dims[2] + oz * factor;
-                        for &l in &labels[base..base + factor] {
-                            counts[l as usize] += 1;
-                        }
-                    }
-                }
-                let n0 = counts[0];
-                let n255 = counts[255];
-                let label = if (n0 + n255) as f64 > empty_threshold {
-                    if n0 > n255 {
-                        0
-                    } else {
-                        255
-                    }
-                } else {
-                    // argmax over 1..=254, first (smallest) on ties
-                    let mut best = 1usize;
-                    for c in 2..255 {
-                        if counts[c] > counts[best] {
-                            best = c;
-                        }
-                    }
-                    best as u8
-                };
-                out.push(label);
-            }
-        }
-    }
-    Ok(out)
+    downsample_monoscene(labels, dims, factor)
+        .map_err(|e| DataError::InvalidArgument(e.to_string()))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
 
     #[test]
     fn learning_map_table_from_facts() {
@@ -274,77 +217,6 @@ mod tests {
             m.remap_point_labels(&[(7 << 16) | 10, 0xFFFF_FFFF]),
             vec![1, 255]
         );
-    }
-
-    fn reference_downsample(labels: &[u8], dims: [usize; 3], f: usize) -> Vec<u8> {
-        // direct transcription of the rule, block by block, with an explicit sort-based mode
-        let od = [dims[0] / f, dims[1] / f, dims[2] / f];
-        let mut out = vec![0u8; od[0] * od[1] * od[2]];
-        for ox in 0..od[0] {
-            for oy in 0..od[1] {
-                for oz in 0..od[2] {
-                    let mut blk = vec![];
-                    for x in 0..f {
-                        for y in 0..f {
-                            for z in 0..f {
-                                blk.push(
-                                    labels[((ox * f + x) * dims[1] + oy * f + y) * dims[2]
-                                        + oz * f
-                                        + z],
-                                );
-                            }
-                        }
-                    }
-                    let n0 = blk.iter().filter(|&&v| v == 0).count();
-                    let n255 = blk.iter().filter(|&&v| v == 255).count();
-                    let v = if (n0 + n255) as f64 > 0.95 * (f * f * f) as f64 {
-                        if n0 > n255 {
-                            0
-                        } else {
-                            255
-                        }
-                    } else {
-                        let mut sem: Vec<u8> =
-                            blk.into_iter().filter(|&v| v > 0 && v < 255).collect();
-                        sem.sort();
-                        let mut best = (0usize, 0u8);
-                        let mut i = 0;
-                        while i < sem.len() {
-                            let j = sem[i..].iter().take_while(|&&v| v == sem[i]).count();
-                            if j > best.0 {
-                                best = (j, sem[i]);
-                            }
-                            i += j;
-                        }
-                        best.1
-                    };
-                    out[(ox * od[1] + oy) * od[2] + oz] = v;
-                }
-            }
-        }
-        out
-    }
-
-    #[test]
-    fn downsample_matches_reference_on_random_grids() {
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        for f in [2usize, 4] {
-            for _ in 0..5 {
-                let dims = [8 * f, 4 * f, 2 * f];
-                let n = dims.iter().product();
-                let labels: Vec<u8> = (0..n)
-                    .map(|_| match rng.random_range(0..10) {
-                        0..=4 => 0,
-                        5 => 255,
-                        _ => rng.random_range(1..4),
-                    })
-                    .collect();
-                assert_eq!(
-                    downsample_labels(&labels, dims, f).unwrap(),
-                    reference_downsample(&labels, dims, f)
-                );
-            }
-        }
     }
 
     #[test]

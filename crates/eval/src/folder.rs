@@ -50,6 +50,7 @@ use occ_data::formats::semantic_kitti::{
     list_sequences, list_stems, read_label_raw, read_packed_bits, KittiPaths, LearningMap,
     NUM_VOXELS,
 };
+use occ_labels::IGNORE;
 use rayon::prelude::*;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -346,7 +347,7 @@ pub fn read_occ3d_prediction(path: &Path, dims: [usize; 3]) -> Result<Vec<u8>, E
         Ok(if (0.0..=254.0).contains(&v) {
             v as u8
         } else {
-            255
+            IGNORE
         })
     };
     match arr.values {

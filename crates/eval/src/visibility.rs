@@ -24,6 +24,7 @@ use occ_data::formats::semantic_kitti::{
     list_stems, read_calib, read_label_raw, read_packed_bits, KittiPaths, LearningMap,
 };
 use occ_geometry::{project_voxel_centers, VoxelGrid};
+use occ_labels::is_occupied;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -117,7 +118,7 @@ impl VisibilityRecall {
         }
         for i in 0..n {
             let g = gt[i];
-            if invalid[i] != 0 || g == 0 || g == 255 || ground_classes.contains(&(g as usize)) {
+            if invalid[i] != 0 || !is_occupied(g) || ground_classes.contains(&(g as usize)) {
                 continue;
             }
             let class = match (in_view[i], occluded[i] != 0) {
@@ -127,7 +128,7 @@ impl VisibilityRecall {
             };
             let c = self.of_mut(class);
             c.voxels += 1;
-            c.found += u64::from(pred[i] != 0 && pred[i] != 255);
+            c.found += u64::from(is_occupied(pred[i]));
         }
         Ok(())
     }

@@ -32,7 +32,7 @@
 //! | Sec. 4.3 | lightweight sparse U-Net | [`sparseocc_pp::unet`] |
 //! | — (not in the paper) | SparseOcc++ options and diagnostics | [`sparseocc_pp::extras`] |
 //! | Table "all modules disabled" | dense baseline | [`dense`] |
-//! | docs/formats.md §2.6 | label downsampling, batch targets | [`targets`] |
+//! | docs/formats.md §2.6 | label conventions and downsampling rules | the `occ-labels` crate; batch targets in `targets` |
 //! | Sec. 3.5, 4.4 | losses (CE, Lovasz, scene-class affinity, mask, depth) | [`loss`] |
 //! | — | compute kernels: [`ModelBackend`] (portable burn ops; CPU fast paths for image convs and DCA sampling) | [`kernels`] |
 //! | — | per-stage timing for `sparseocc bench` | [`profile`] |
@@ -51,11 +51,11 @@ pub mod profile;
 pub mod sample;
 pub mod sparseocc;
 pub mod sparseocc_pp;
-pub mod targets;
+mod targets;
 
 pub use batch::{Batch, CameraInput};
 pub use error::ModelError;
 pub use kernels::ModelBackend;
 pub use network::OccNetwork;
-pub use occnet::{load_checked, ModelKind, OccNet, OccNetConfig};
+pub use occnet::{load_checked, ModelKind, Network, NetworkVariant, OccNet, OccNetConfig};
 pub use output::ModelOutput;

@@ -15,6 +15,7 @@ use crate::kernels::ModelBackend;
 use crate::loss::sparseocc_class_weights;
 use crate::network::OccNetwork;
 use crate::output::ModelOutput;
+use crate::profile::Stage;
 use crate::sparseocc::{SparseOcc, SparseOccConfig};
 use crate::sparseocc_pp::{SparseOccPP, SparseOccPPConfig};
 use burn::prelude::*;
@@ -57,7 +58,55 @@ impl ModelKind {
     }
 }
 
-/// Configuration of [`OccNet`] (the `[model]` section of a config file).
+/// The chosen model's settings with the shared sizes filled in: what [`OccNetConfig::variant`] resolves
+/// the `[model]` section to, and what [`OccNetConfig::init`] builds. One value holds exactly one model's
+/// settings, so code that reads a model's settings matches on the model it reads them for.
+#[derive(Clone, Debug)]
+pub enum NetworkVariant {
+    /// SparseOcc++ (paper Sec. 4).
+    SparseOccPP(SparseOccPPConfig),
+    /// SparseOcc (paper Sec. 3).
+    SparseOcc(SparseOccConfig),
+    /// The dense baseline.
+    Dense(DenseBaselineConfig),
+}
+
+impl NetworkVariant {
+    /// Which model this is.
+    pub fn kind(&self) -> ModelKind {
+        match self {
+            Self::SparseOccPP(_) => ModelKind::SparseOccPP,
+            Self::SparseOcc(_) => ModelKind::SparseOcc,
+            Self::Dense(_) => ModelKind::Dense,
+        }
+    }
+
+    /// Whether training reads the LiDAR scans: the depth supervision of SparseOcc's and the dense
+    /// baseline's LSS, and SparseOcc++'s options that read them
+    /// ([`SparseOccPPConfig::reads_points_in_training`]).
+    pub fn needs_points_for_training(&self) -> bool {
+        match self {
+            Self::SparseOccPP(pp) => pp.reads_points_in_training(),
+            Self::SparseOcc(_) | Self::Dense(_) => true,
+        }
+    }
+
+    /// Whether inference reads the LiDAR scan: only SparseOcc++'s oracle diagnostics do
+    /// ([`SparseOccPPConfig::reads_points_at_test`]); they are no camera-only models.
+    pub fn needs_points_at_test(&self) -> bool {
+        match self {
+            Self::SparseOccPP(pp) => pp.reads_points_at_test(),
+            Self::SparseOcc(_) | Self::Dense(_) => false,
+        }
+    }
+}
+
+/// Configuration of [`OccNet`] (the `[model]` section of a config file), in its on-disk form.
+///
+/// `kind` chooses the model; the per-model sections (`[model.sparseocc_pp]`, `[model.sparseocc]`,
+/// `[model.dense]`) may stand side by side, so that one file serves all three (`--model` switches
+/// `kind`, the benchmark runs each). Code reads the chosen model's settings through
+/// [`Self::variant`] only.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OccNetConfig {
@@ -115,57 +164,42 @@ impl OccNetConfig {
         self.encoder.fpn.out_channels
     }
 
-    /// Whether training needs the LiDAR scans: the depth supervision of SparseOcc's and the dense
-    /// baseline's LSS, and SparseOcc++'s options that read them (the depth gate, the image
-    /// semantic head, the depth-oracle diagnostic).
+    /// The settings of the model `kind` chooses, from its section (or the paper defaults when the
+    /// section is absent), with the shared sizes filled in.
+    pub fn variant(&self) -> NetworkVariant {
+        let (n, f, dims) = (self.num_classes, self.feat_channels(), self.full_dims);
+        // A section (or the default) with the shared sizes: the three configs are distinct types
+        // with the same three size fields.
+        macro_rules! sized {
+            ($section:expr, $default:expr) => {{
+                let mut c = $section.clone().unwrap_or_else(|| $default);
+                (c.num_classes, c.feat_channels, c.full_dims) = (n, f, dims);
+                c
+            }};
+        }
+        match self.kind {
+            ModelKind::SparseOccPP => {
+                let mut c = sized!(self.sparseocc_pp, SparseOccPPConfig::new(n, 128, f, dims));
+                c.num_feature_levels = self.encoder.resnet.out_indices.len();
+                NetworkVariant::SparseOccPP(c)
+            }
+            ModelKind::SparseOcc => {
+                NetworkVariant::SparseOcc(sized!(self.sparseocc, SparseOccConfig::new(n, f, dims)))
+            }
+            ModelKind::Dense => {
+                NetworkVariant::Dense(sized!(self.dense, DenseBaselineConfig::new(n, f, dims)))
+            }
+        }
+    }
+
+    /// Whether training needs the LiDAR scans ([`NetworkVariant::needs_points_for_training`]).
     pub fn needs_points_for_training(&self) -> bool {
-        let pp = self.pp_config();
-        self.kind != ModelKind::SparseOccPP
-            || pp.depth_gate
-            || pp.sem2d_aux
-            || pp.depth_oracle
-            || pp.scan_oracle
+        self.variant().needs_points_for_training()
     }
 
-    /// Whether inference reads the LiDAR scan: only the depth-oracle diagnostic of SparseOcc++ does
-    /// (it is not a camera-only model).
+    /// Whether inference reads the LiDAR scan ([`NetworkVariant::needs_points_at_test`]).
     pub fn needs_points_at_test(&self) -> bool {
-        self.kind == ModelKind::SparseOccPP
-            && (self.pp_config().depth_oracle || self.pp_config().scan_oracle)
-    }
-
-    /// The SparseOcc++ configuration with the shared sizes filled in.
-    pub fn pp_config(&self) -> SparseOccPPConfig {
-        let mut c = self.sparseocc_pp.clone().unwrap_or_else(|| {
-            SparseOccPPConfig::new(self.num_classes, 128, self.feat_channels(), self.full_dims)
-        });
-        c.num_classes = self.num_classes;
-        c.feat_channels = self.feat_channels();
-        c.full_dims = self.full_dims;
-        c.num_feature_levels = self.encoder.resnet.out_indices.len();
-        c
-    }
-
-    /// The SparseOcc configuration with the shared sizes filled in.
-    pub fn so_config(&self) -> SparseOccConfig {
-        let mut c = self.sparseocc.clone().unwrap_or_else(|| {
-            SparseOccConfig::new(self.num_classes, self.feat_channels(), self.full_dims)
-        });
-        c.num_classes = self.num_classes;
-        c.feat_channels = self.feat_channels();
-        c.full_dims = self.full_dims;
-        c
-    }
-
-    /// The dense-baseline configuration with the shared sizes filled in.
-    pub fn dense_config(&self) -> DenseBaselineConfig {
-        let mut c = self.dense.clone().unwrap_or_else(|| {
-            DenseBaselineConfig::new(self.num_classes, self.feat_channels(), self.full_dims)
-        });
-        c.num_classes = self.num_classes;
-        c.feat_channels = self.feat_channels();
-        c.full_dims = self.full_dims;
-        c
+        self.variant().needs_points_at_test()
     }
 
     /// The same configuration for another model kind (the benchmark runs all three).
@@ -186,7 +220,8 @@ impl OccNetConfig {
         }
         self.encoder.resnet.validate()?;
         self.class_weights()?;
-        if self.kind != ModelKind::SparseOccPP
+        let variant = self.variant();
+        if !matches!(variant, NetworkVariant::SparseOccPP(_))
             && self.lss_level >= self.encoder.resnet.out_indices.len()
         {
             return Err(ModelError::Config(format!(
@@ -195,9 +230,9 @@ impl OccNetConfig {
                 self.encoder.resnet.out_indices.len()
             )));
         }
-        match self.kind {
-            ModelKind::SparseOccPP => self.pp_config().validate(),
-            _ => Ok(()),
+        match variant {
+            NetworkVariant::SparseOccPP(c) => c.validate(),
+            NetworkVariant::SparseOcc(_) | NetworkVariant::Dense(_) => Ok(()),
         }
     }
 
@@ -205,49 +240,78 @@ impl OccNetConfig {
     pub fn init<B: ModelBackend>(&self, device: &B::Device) -> Result<OccNet<B>, ModelError> {
         self.validate()?;
         let encoder = self.encoder.init(device)?;
+        let variant = self.variant();
         let (mut pp, mut so, mut dense) = (None, None, None);
-        match self.kind {
-            ModelKind::SparseOccPP => pp = Some(self.pp_config().try_init(device)?),
-            ModelKind::SparseOcc => so = Some(self.so_config().init(device)?),
-            ModelKind::Dense => dense = Some(self.dense_config().init(device)?),
+        match &variant {
+            NetworkVariant::SparseOccPP(c) => pp = Some(c.try_init(device)?),
+            NetworkVariant::SparseOcc(c) => so = Some(c.init(device)?),
+            NetworkVariant::Dense(c) => dense = Some(c.init(device)?),
         }
         Ok(OccNet {
             encoder,
             pp,
             so,
             dense,
-            kind: self.kind.name().to_string(),
+            kind: self.kind,
             class_weights: self.class_weights()?,
-            pp_config: self.pp_config(),
             lss_level: self.lss_level,
             num_classes: self.num_classes,
         })
     }
 }
 
-/// Image encoder + occupancy model. Exactly one of `pp`, `so`, `dense` is present; checkpoint keys
-/// are `encoder.backbone.*`, `encoder.neck.*` and `pp.*` / `so.*` / `dense.*`.
+/// The occupancy model behind an [`OccNet`]'s encoder ([`OccNet::network`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Network<'a, B: Backend> {
+    /// SparseOcc++.
+    SparseOccPP(&'a SparseOccPP<B>),
+    /// SparseOcc.
+    SparseOcc(&'a SparseOcc<B>),
+    /// The dense baseline.
+    Dense(&'a DenseBaseline<B>),
+}
+
+/// Image encoder + occupancy model, built by [`OccNetConfig::init`] only; [`Self::network`] gives the
+/// model.
+///
+/// The model is kept in three optional fields, exactly one of them present (the one of `kind`),
+/// because they are the checkpoint format: the record is `encoder`, then `pp`, `so` and
+/// `dense` as options (burn's `BinFileRecorder` writes them in this order, so an enum here would no
+/// longer read the checkpoints of existing run folders). Parameter paths are `encoder.backbone.*`,
+/// `encoder.neck.*` and `pp.*` / `so.*` / `dense.*`.
 #[derive(Module, Debug)]
 pub struct OccNet<B: Backend> {
     /// ResNet + FPN.
     pub encoder: ImageEncoder<B>,
-    /// SparseOcc++.
-    pub pp: Option<SparseOccPP<B>>,
-    /// SparseOcc.
-    pub so: Option<SparseOcc<B>>,
-    /// Dense baseline.
-    pub dense: Option<DenseBaseline<B>>,
-    kind: String,
+    pp: Option<SparseOccPP<B>>,
+    so: Option<SparseOcc<B>>,
+    dense: Option<DenseBaseline<B>>,
+    kind: ModelKind,
     class_weights: Vec<f64>,
-    pp_config: SparseOccPPConfig,
     lss_level: usize,
     num_classes: usize,
 }
 
 impl<B: ModelBackend> OccNet<B> {
+    /// Which model this is.
+    pub fn kind(&self) -> ModelKind {
+        self.kind
+    }
+
     /// `sparseocc++`, `sparseocc` or `dense`.
-    pub fn kind_name(&self) -> &str {
-        &self.kind
+    pub fn kind_name(&self) -> &'static str {
+        self.kind().name()
+    }
+
+    /// The occupancy model (the one `kind` names; [`OccNetConfig::init`] builds it, loading a
+    /// checkpoint keeps it).
+    pub fn network(&self) -> Result<Network<'_, B>, ModelError> {
+        let missing = || ModelError::Config(format!("OccNet holds no {} model", self.kind_name()));
+        Ok(match self.kind {
+            ModelKind::SparseOccPP => Network::SparseOccPP(self.pp.as_ref().ok_or_else(missing)?),
+            ModelKind::SparseOcc => Network::SparseOcc(self.so.as_ref().ok_or_else(missing)?),
+            ModelKind::Dense => Network::Dense(self.dense.as_ref().ok_or_else(missing)?),
+        })
     }
 
     /// Runs encoder and model; with targets in the batch, also the loss terms.
@@ -263,30 +327,36 @@ impl<B: ModelBackend> OccNet<B> {
                 batch.images.dims()
             )));
         }
+        let network = self.network()?;
         let images = batch.images.clone().reshape([b * v, c, h, w]);
         crate::profile::start();
         let feats = self.encoder.forward(images);
         if let Some(f) = feats.last() {
-            crate::profile::mark("encoder", f);
+            crate::profile::mark(Stage::Encoder, f);
         }
         let strides = self.encoder.strides();
         let with_loss = batch.target.is_some();
         let cw = &self.class_weights;
-        let mut out = if let Some(pp) = &self.pp {
-            let o = pp.forward(&feats, &strides, batch)?;
-            let losses = if with_loss {
-                o.losses(batch, &self.pp_config, cw)?
-            } else {
-                Vec::new()
-            };
-            ModelOutput { losses, ..o.out }
-        } else {
+        // SparseOcc and the dense baseline lift one encoder level.
+        let lss_input = |feats: Vec<Tensor<B, 4>>| {
             let lvl = self.lss_level.min(feats.len().saturating_sub(1));
             let f = feats.into_iter().nth(lvl).ok_or_else(|| {
                 ModelError::Config("the image encoder returned no feature level".into())
             })?;
-            let stride = strides[lvl];
-            if let Some(so) = &self.so {
+            Ok::<_, ModelError>((f, strides[lvl]))
+        };
+        let mut out = match network {
+            Network::SparseOccPP(pp) => {
+                let o = pp.forward(&feats, &strides, batch)?;
+                let losses = if with_loss {
+                    o.losses(batch, pp.config(), cw)?
+                } else {
+                    Vec::new()
+                };
+                ModelOutput { losses, ..o.out }
+            }
+            Network::SparseOcc(so) => {
+                let (f, stride) = lss_input(feats)?;
                 let o = so.forward(f, stride, batch)?;
                 let losses = if with_loss {
                     o.losses(batch, cw)?
@@ -294,7 +364,9 @@ impl<B: ModelBackend> OccNet<B> {
                     Vec::new()
                 };
                 ModelOutput { losses, ..o.out }
-            } else if let Some(dense) = &self.dense {
+            }
+            Network::Dense(dense) => {
+                let (f, stride) = lss_input(feats)?;
                 let o = dense.forward(f, stride, batch)?;
                 let losses = if with_loss {
                     o.losses(batch, cw)?
@@ -302,8 +374,6 @@ impl<B: ModelBackend> OccNet<B> {
                     Vec::new()
                 };
                 ModelOutput { losses, ..o.out }
-            } else {
-                return Err(ModelError::Config("OccNet holds no model".into()));
             }
         };
         out.stats

@@ -1,5 +1,6 @@
 //! The model output: class logits on a sparse set of voxels, losses, statistics.
 
+use crate::loss::LossKey;
 use burn::prelude::*;
 
 /// What every model returns.
@@ -13,8 +14,8 @@ pub struct ModelOutput<B: Backend> {
     pub out_dims: [usize; 3],
     /// Full-resolution voxels per output voxel along each axis (2 when predicting at 1/2 resolution).
     pub upsample: usize,
-    /// Named loss terms (present when the batch had targets).
-    pub losses: Vec<(String, Tensor<B, 1>)>,
+    /// Loss terms by name (present when the batch had targets).
+    pub losses: Vec<(LossKey, Tensor<B, 1>)>,
     /// Active voxels (or other counts) per stage, for benchmarks and logs.
     pub stats: Vec<(String, usize)>,
 }

@@ -21,11 +21,57 @@ use burn::prelude::*;
 use std::cell::{Cell, RefCell};
 use std::time::Instant;
 
-/// One stage of a profiled pass: its name, wall milliseconds and multiply-adds.
+/// A stage of a forward pass, as [`mark`] ends it and `sparseocc bench` reports it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Stage {
+    /// The image encoder (ResNet + FPN): `encoder`.
+    Encoder,
+    /// The LSS view transform (SparseOcc, dense baseline): `lss`.
+    Lss,
+    /// SparseOcc's latent propagator, once per level: `propagator`.
+    Propagator,
+    /// SparseOcc's sparse feature pyramid: `pyramid`.
+    Pyramid,
+    /// SparseOcc's mask head: `mask_head`.
+    MaskHead,
+    /// The dense baseline's 3D convolutions: `dense_encoder`.
+    DenseEncoder,
+    /// SparseOcc++'s sparse anchor generation: `anchors`.
+    Anchors,
+    /// SparseOcc++'s SCF heads and geometry-guided propagation: `scf+propagation`.
+    ScfPropagation,
+    /// SparseOcc++'s DCA on the completed voxels: `dca`.
+    Dca,
+    /// SparseOcc++'s sparse U-Net: `unet`.
+    Unet,
+    /// The classifier (SparseOcc++, dense baseline): `head`.
+    Head,
+}
+
+impl Stage {
+    /// The stage's name in traces and benchmark tables.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Encoder => "encoder",
+            Self::Lss => "lss",
+            Self::Propagator => "propagator",
+            Self::Pyramid => "pyramid",
+            Self::MaskHead => "mask_head",
+            Self::DenseEncoder => "dense_encoder",
+            Self::Anchors => "anchors",
+            Self::ScfPropagation => "scf+propagation",
+            Self::Dca => "dca",
+            Self::Unet => "unet",
+            Self::Head => "head",
+        }
+    }
+}
+
+/// One stage of a profiled pass: which, wall milliseconds and multiply-adds.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StageRecord {
-    /// Stage name (as given to [`mark`]).
-    pub name: String,
+    /// The stage (as given to [`mark`]).
+    pub stage: Stage,
     /// Wall time since the previous mark (ms).
     pub ms: f64,
     /// Multiply-adds counted since the previous mark.
@@ -139,8 +185,8 @@ pub fn start() {
     });
 }
 
-/// Ends stage `name`: synchronises on `done` and records the milliseconds since the last mark.
-pub fn mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
+/// Ends `stage`: synchronises on `done` and records the milliseconds since the last mark.
+pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
     let on = PROFILE.with(|p| p.borrow().is_some());
     if !on && !trace() {
         return;
@@ -153,7 +199,7 @@ pub fn mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
         let now = Instant::now();
         let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
         let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
-        eprintln!("[trace] {name}: {ms:.1} ms, {:?}", done.dims());
+        eprintln!("[trace] {}: {ms:.1} ms, {:?}", stage.as_str(), done.dims());
     }
     if !on {
         return;
@@ -163,7 +209,7 @@ pub fn mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
     PROFILE.with(|p| {
         if let Some((t, v)) = p.borrow_mut().as_mut() {
             v.push(StageRecord {
-                name: name.to_string(),
+                stage,
                 ms: t.elapsed().as_secs_f64() * 1e3,
                 macs,
             });
@@ -273,17 +319,17 @@ mod tests {
         enable(true);
         let y = linear(&lin, Tensor::<B, 2>::ones([3, 4], &device));
         add_matmul("attention", 2, 3, 4, 5);
-        mark("first", &y);
+        mark(Stage::Encoder, &y);
         add_macs("dca_sampling", 11);
-        mark("second", &y);
+        mark(Stage::Head, &y);
         add_conv2d([8, 2, 3, 3], 10);
         let stages = take();
         assert_eq!(stages.len(), 2);
         assert_eq!(
-            (stages[0].name.as_str(), stages[0].macs),
-            ("first", 3 * 4 * 2 + 2 * 3 * 4 * 5)
+            (stages[0].stage, stages[0].macs),
+            (Stage::Encoder, 3 * 4 * 2 + 2 * 3 * 4 * 5)
         );
-        assert_eq!((stages[1].name.as_str(), stages[1].macs), ("second", 11));
+        assert_eq!((stages[1].stage, stages[1].macs), (Stage::Head, 11));
         assert!(stages.iter().all(|s| s.ms >= 0.0));
         assert_eq!(take_unmarked_macs(), 10 * 2 * 3 * 3);
         let mut ops = take_ops();
@@ -299,7 +345,7 @@ mod tests {
         );
         enable(false);
         add_macs("linear", 5);
-        mark("off", &y);
+        mark(Stage::Dca, &y);
         assert!(take().is_empty());
         assert_eq!(take_unmarked_macs(), 0);
     }

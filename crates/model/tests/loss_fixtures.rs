@@ -8,10 +8,10 @@ use burn::backend::{Autodiff, NdArray};
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
 use burn::tensor::Element;
+use occ_labels::IGNORE;
 use occ_model::loss::{
     cross_entropy, cross_entropy_weighted, depth_bce, dice_loss, dice_per_mask, geo_scal_loss,
     lovasz_softmax, mask_bce, mask_bce_per_mask, monoscene_class_weights, occ_loss, sem_scal_loss,
-    IGNORE_LABEL,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -141,10 +141,10 @@ fn eval_loss<B: Backend>(
     weights: &[f64],
 ) -> Tensor<B, 1> {
     match name {
-        "ce_weighted" => cross_entropy_weighted(logits, labels, weights, IGNORE_LABEL).unwrap(),
-        "lovasz_softmax" => lovasz_softmax(softmax(logits, 1), labels, IGNORE_LABEL).unwrap(),
-        "geo_scal" => geo_scal_loss(logits, labels, 0, IGNORE_LABEL).unwrap(),
-        "sem_scal" => sem_scal_loss(logits, labels, IGNORE_LABEL).unwrap(),
+        "ce_weighted" => cross_entropy_weighted(logits, labels, weights, IGNORE).unwrap(),
+        "lovasz_softmax" => lovasz_softmax(softmax(logits, 1), labels, IGNORE).unwrap(),
+        "geo_scal" => geo_scal_loss(logits, labels, 0, IGNORE).unwrap(),
+        "sem_scal" => sem_scal_loss(logits, labels, IGNORE).unwrap(),
         other => panic!("manifest loss `{other}` is not known to this test"),
     }
 }
@@ -219,7 +219,7 @@ fn occ_loss_terms_match_fixture() {
         assert!(
             (got - want).abs() <= 1e-9 * want.abs(),
             "{}: {got} vs {want}",
-            term.0
+            term.0.as_str()
         );
     }
 }
@@ -242,7 +242,7 @@ fn random_case(r: &mut ChaCha8Rng, n: usize, c: usize, ignore_frac: f64) -> (Vec
     let labels: Vec<u8> = (0..n)
         .map(|_| {
             if r.random_bool(ignore_frac) {
-                IGNORE_LABEL
+                IGNORE
             } else {
                 r.random_range(0..c as u8)
             }
@@ -265,15 +265,15 @@ fn ce_uniform_weights_is_mean_nll() {
         let mut sum = 0.0;
         let mut cnt = 0.0;
         for i in 0..n {
-            if labels[i] != IGNORE_LABEL {
+            if labels[i] != IGNORE {
                 sum -= host_log_softmax(&logits[i * c..(i + 1) * c])[labels[i] as usize];
                 cnt += 1.0;
             }
         }
         let want = sum / cnt;
         let x = tensor2::<B64>(&logits, [n, c]);
-        let a = host(cross_entropy(x.clone(), &labels, IGNORE_LABEL).unwrap())[0];
-        let b = host(cross_entropy_weighted(x, &labels, &vec![2.5; c], IGNORE_LABEL).unwrap())[0];
+        let a = host(cross_entropy(x.clone(), &labels, IGNORE).unwrap())[0];
+        let b = host(cross_entropy_weighted(x, &labels, &vec![2.5; c], IGNORE).unwrap())[0];
         assert!((a - want).abs() < 1e-12 * want.abs(), "{a} vs {want}");
         assert!((b - want).abs() < 1e-12 * want.abs(), "{b} vs {want}");
     }
@@ -288,7 +288,7 @@ fn ce_weighted_brute_force() {
     let w: Vec<f64> = (0..c).map(|_| r.random_range(0.1..2.0)).collect();
     let (mut num, mut den) = (0.0, 0.0);
     for i in 0..n {
-        if labels[i] != IGNORE_LABEL {
+        if labels[i] != IGNORE {
             let y = labels[i] as usize;
             num -= w[y] * host_log_softmax(&logits[i * c..(i + 1) * c])[y];
             den += w[y];
@@ -307,19 +307,18 @@ fn lovasz_perfect_prediction_is_zero() {
     // Exact one-hot probabilities on the labelled rows, random rows where ignored.
     let mut probs = vec![0.0; n * c];
     for i in 0..n {
-        if labels[i] == IGNORE_LABEL {
+        if labels[i] == IGNORE {
             probs[i * c + r.random_range(0..c)] = 1.0;
         } else {
             probs[i * c + labels[i] as usize] = 1.0;
         }
     }
-    let got =
-        host(lovasz_softmax(tensor2::<B64>(&probs, [n, c]), &labels, IGNORE_LABEL).unwrap())[0];
+    let got = host(lovasz_softmax(tensor2::<B64>(&probs, [n, c]), &labels, IGNORE).unwrap())[0];
     assert!(got.abs() < 1e-12, "{got}");
     // And from very confident logits.
     let logits: Vec<f64> = probs.iter().map(|p| 40.0 * p).collect();
     let x = tensor2::<B64>(&logits, [n, c]);
-    let got = host(lovasz_softmax(softmax(x, 1), &labels, IGNORE_LABEL).unwrap())[0];
+    let got = host(lovasz_softmax(softmax(x, 1), &labels, IGNORE).unwrap())[0];
     assert!(got.abs() < 1e-12, "{got}");
 }
 
@@ -340,7 +339,7 @@ fn lovasz_hard_prediction_is_one_minus_iou() {
         for k in 0..c {
             let (mut inter, mut union, mut any) = (0.0, 0.0, false);
             for i in 0..n {
-                if labels[i] == IGNORE_LABEL {
+                if labels[i] == IGNORE {
                     continue;
                 }
                 let g = labels[i] as usize == k;
@@ -355,8 +354,7 @@ fn lovasz_hard_prediction_is_one_minus_iou() {
             }
         }
         let want = sum / present;
-        let got =
-            host(lovasz_softmax(tensor2::<B64>(&probs, [n, c]), &labels, IGNORE_LABEL).unwrap())[0];
+        let got = host(lovasz_softmax(tensor2::<B64>(&probs, [n, c]), &labels, IGNORE).unwrap())[0];
         assert!((got - want).abs() < 1e-12, "n={n} c={c}: {got} vs {want}");
     }
 }
@@ -383,8 +381,8 @@ fn scal_losses_decrease_towards_target() {
             })
             .collect();
         let x = tensor2::<B64>(&moved, [n, c]);
-        let geo = host(geo_scal_loss(x.clone(), &labels, 0, IGNORE_LABEL).unwrap())[0];
-        let sem = host(sem_scal_loss(x, &labels, IGNORE_LABEL).unwrap())[0];
+        let geo = host(geo_scal_loss(x.clone(), &labels, 0, IGNORE).unwrap())[0];
+        let sem = host(sem_scal_loss(x, &labels, IGNORE).unwrap())[0];
         assert!(
             geo < prev.0 && sem < prev.1,
             "step {step}: geo {geo} sem {sem} prev {prev:?}"
@@ -405,7 +403,7 @@ fn ignored_rows_do_not_matter() {
     let (logits, labels) = random_case(&mut r, n, c, 0.4);
     let mut changed = logits.clone();
     for i in 0..n {
-        if labels[i] == IGNORE_LABEL {
+        if labels[i] == IGNORE {
             for k in 0..c {
                 changed[i * c + k] = r.random_range(-10.0..10.0);
             }
@@ -426,7 +424,7 @@ fn ignored_rows_do_not_matter() {
             &w,
         ))[0];
         assert!((a - b).abs() < 1e-12 * a.abs(), "{name}: {a} vs {b}");
-        let all_ignored = vec![IGNORE_LABEL; n];
+        let all_ignored = vec![IGNORE; n];
         let x = tensor2::<B64>(&logits, [n, c]).require_grad();
         let l = eval_loss(name, x.clone(), &all_ignored, &w);
         assert_eq!(host(l.clone())[0], 0.0, "{name}");

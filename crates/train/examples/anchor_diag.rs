@@ -33,7 +33,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .map(|s| s.parse())
         .transpose()?
         .unwrap_or(ds.len());
-    let pp = model.pp.as_ref().ok_or("not a SparseOcc++ run")?;
+    let occ_model::Network::SparseOccPP(pp) = model.network()? else {
+        return Err("not a SparseOcc++ run".into());
+    };
     // Sampling-offset drift at level 0, whose queries are image-independent (learned embedding +
     // position code of every 1/8-resolution candidate): mean |offset| in feature pixels per image
     // level, trained (W·q + b) against the bias alone and against the initial ring's scale.

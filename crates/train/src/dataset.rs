@@ -27,6 +27,7 @@ use occ_data::image::{process_image, read_image, read_image_size, ImagePipelineC
 use occ_data::labels::LearningMap;
 use occ_eval::{EvalMask, EvalReport, Evaluator, FolderOptions, Protocol};
 use occ_geometry::{transform_point, CameraView, Mat4, VoxelGrid};
+use occ_labels::{EMPTY, IGNORE};
 use occ_model::{Batch, CameraInput};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
@@ -364,7 +365,7 @@ impl KittiDataset {
                 let inv = sk::read_packed_bits(&inv_p, n)?;
                 for (t, &v) in t.iter_mut().zip(&inv) {
                     if v == 1 {
-                        *t = 255;
+                        *t = IGNORE;
                     }
                 }
             }
@@ -816,8 +817,8 @@ pub fn occ3d_training_labels(l: &Occ3dLabels) -> Vec<u8> {
         .iter()
         .zip(&l.mask_camera)
         .map(|(&s, &m)| match (m, s) {
-            (0, _) => 255,
-            (_, occ3d::FREE) => 0,
+            (0, _) => IGNORE,
+            (_, occ3d::FREE) => EMPTY,
             (_, c) => c + 1,
         })
         .collect()
@@ -828,8 +829,8 @@ pub fn occ3d_from_training(classes: &[u8]) -> Vec<u8> {
     classes
         .iter()
         .map(|&k| match k {
-            0 => occ3d::FREE,
-            255 => 255,
+            EMPTY => occ3d::FREE,
+            IGNORE => IGNORE,
             k => k - 1,
         })
         .collect()

@@ -17,9 +17,7 @@
 use crate::dataset::Sample;
 use crate::error::TrainError;
 use occ_geometry::{mat4_identity, mat4_mul, VoxelGrid};
-
-/// Label of the voxels that enter the grid (no ground truth there).
-const IGNORE: u8 = 255;
+use occ_labels::IGNORE;
 
 /// `grid` (flat `[X][Y][Z]`) moved by `(dx, dy)` voxels; voxels that enter are `fill`. `None` when
 /// `grid.len()` does not match `dims`.

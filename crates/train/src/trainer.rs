@@ -342,7 +342,7 @@ where
         let mut terms = Vec::new();
         for (name, l) in &out.losses {
             let v: f64 = l.clone().into_scalar().elem();
-            terms.push((name.clone(), v));
+            terms.push((name.to_string(), v));
         }
         let loss = out
             .total_loss()

@@ -220,3 +220,97 @@ fn lidar_needs_follow_the_model_config() {
         assert_eq!(cfg.model.needs_points_at_test(), *test, "case {i}");
     }
 }
+
+/// The `[model]` section resolves to the settings of one model: for every shipped config and each of
+/// the three kinds (as `--model` switches them), [`OccNetConfig::variant`] is that kind's section of
+/// the file (defaults filled in; the paper defaults without one) with the shared sizes of `[model]`,
+/// whatever the other sections hold.
+///
+/// [`OccNetConfig::variant`]: occ_model::OccNetConfig::variant
+#[test]
+fn every_shipped_config_resolves_each_kind_to_its_own_section() {
+    use occ_model::dense::DenseBaselineConfig;
+    use occ_model::sparseocc::SparseOccConfig;
+    use occ_model::sparseocc_pp::SparseOccPPConfig;
+    use occ_model::{ModelKind, NetworkVariant};
+    fn json<T: serde::Serialize>(v: &T) -> serde_json::Value {
+        serde_json::to_value(v).unwrap()
+    }
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let path = e.unwrap().path();
+        if path.extension().and_then(|x| x.to_str()) != Some("toml") {
+            continue;
+        }
+        let cfg = RunConfig::load(&path).unwrap().model;
+        let (n, f, dims) = (cfg.num_classes, cfg.encoder.fpn.out_channels, cfg.full_dims);
+        for kind in [
+            ModelKind::SparseOccPP,
+            ModelKind::SparseOcc,
+            ModelKind::Dense,
+        ] {
+            let variant = cfg.with_kind(kind).variant();
+            assert_eq!(variant.kind(), kind, "{}", path.display());
+            let (got, want) = match variant {
+                NetworkVariant::SparseOccPP(c) => {
+                    let mut s = (cfg.sparseocc_pp.clone())
+                        .unwrap_or_else(|| SparseOccPPConfig::new(n, 128, f, dims));
+                    (s.num_classes, s.feat_channels, s.full_dims) = (n, f, dims);
+                    s.num_feature_levels = cfg.encoder.resnet.out_indices.len();
+                    (json(&c), json(&s))
+                }
+                NetworkVariant::SparseOcc(c) => {
+                    let mut s =
+                        (cfg.sparseocc.clone()).unwrap_or_else(|| SparseOccConfig::new(n, f, dims));
+                    (s.num_classes, s.feat_channels, s.full_dims) = (n, f, dims);
+                    (json(&c), json(&s))
+                }
+                NetworkVariant::Dense(c) => {
+                    let mut s =
+                        (cfg.dense.clone()).unwrap_or_else(|| DenseBaselineConfig::new(n, f, dims));
+                    (s.num_classes, s.feat_channels, s.full_dims) = (n, f, dims);
+                    (json(&c), json(&s))
+                }
+            };
+            assert_eq!(got, want, "{} as {}", path.display(), kind.name());
+        }
+    }
+}
+
+/// `init` builds the model the config names, and its parameters keep the checkpoint paths
+/// (`encoder.*` and `pp.*` / `so.*` / `dense.*`) that the run folders' `model.bin` files hold.
+#[test]
+fn each_kind_builds_its_own_network_under_the_checkpoint_paths() {
+    use occ_model::occnet::param_shapes;
+    use occ_model::{ModelKind, Network, OccNet};
+    type B = burn::backend::NdArray<f32>;
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synthetic_tiny.toml");
+    let cfg = RunConfig::load(&path).unwrap().model;
+    let device = Default::default();
+    for (kind, prefix) in [
+        (ModelKind::SparseOccPP, "pp."),
+        (ModelKind::SparseOcc, "so."),
+        (ModelKind::Dense, "dense."),
+    ] {
+        let net: OccNet<B> = cfg.with_kind(kind).init(&device).unwrap();
+        assert_eq!(net.kind(), kind);
+        let built = match net.network().unwrap() {
+            Network::SparseOccPP(_) => ModelKind::SparseOccPP,
+            Network::SparseOcc(_) => ModelKind::SparseOcc,
+            Network::Dense(_) => ModelKind::Dense,
+        };
+        assert_eq!(built, kind);
+        let shapes = param_shapes::<B, _>(&net);
+        assert!(
+            shapes.iter().any(|(p, _)| p.starts_with(prefix)),
+            "{prefix}"
+        );
+        assert!(
+            shapes
+                .iter()
+                .all(|(p, _)| p.starts_with("encoder.") || p.starts_with(prefix)),
+            "{:?}",
+            shapes.iter().map(|(p, _)| p).collect::<Vec<_>>()
+        );
+    }
+}

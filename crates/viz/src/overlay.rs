@@ -9,6 +9,7 @@
 
 use crate::RgbImage;
 use occ_geometry::{Mat4, VoxelGrid};
+use occ_labels::IGNORE;
 use rayon::prelude::*;
 
 use crate::canvas::{blend, shade, Canvas};
@@ -50,7 +51,7 @@ impl OverlayOptions {
         OverlayOptions {
             palette,
             empty_class: palette.default_empty_class(),
-            ignore_class: 255,
+            ignore_class: IGNORE,
             color_by_height: false,
             alpha: 0.5,
             near_m: 0.5,

@@ -84,7 +84,7 @@ impl Palette {
     /// The class id that means "empty/free" in this dataset (0, 17, 0); not drawn by default.
     pub fn default_empty_class(self) -> u8 {
         match self {
-            Palette::SemanticKitti | Palette::NuScenesOccupancy => 0,
+            Palette::SemanticKitti | Palette::NuScenesOccupancy => occ_labels::EMPTY,
             Palette::Occ3d => 17,
         }
     }

@@ -22,6 +22,7 @@ use std::io::{BufWriter, Write};
 use std::path::Path;
 
 use occ_geometry::VoxelGrid;
+use occ_labels::IGNORE;
 
 use crate::palette::{height_color, Palette};
 use crate::render::drawn;
@@ -57,7 +58,7 @@ impl PlyOptions {
         PlyOptions {
             palette,
             empty_class: palette.default_empty_class(),
-            ignore_class: 255,
+            ignore_class: IGNORE,
             color_by_height: false,
             format: PlyFormat::BinaryLittleEndian,
         }

@@ -10,6 +10,7 @@
 
 use crate::RgbImage;
 use occ_geometry::{CameraView, Mat4, PinholeCamera, VoxelGrid};
+use occ_labels::IGNORE;
 use rayon::prelude::*;
 
 use crate::canvas::{shade, Canvas};
@@ -50,7 +51,7 @@ impl RenderOptions {
             height: 720,
             palette,
             empty_class: palette.default_empty_class(),
-            ignore_class: 255,
+            ignore_class: IGNORE,
             title: None,
             legend: true,
             color_by_height: false,

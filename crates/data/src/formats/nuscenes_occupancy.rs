@@ -17,6 +17,7 @@ use crate::error::DataError;
 use occ_geometry::{
     mat4_from_quat_translation, mat4_inverse, mat4_mul, CameraView, Mat4, PinholeCamera,
 };
+use occ_labels::{EMPTY, IGNORE};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -50,7 +51,7 @@ pub const CLASS_NAMES: [&str; 17] = [
 /// `None` for ids above 16.
 pub fn training_class(raw: i64) -> Option<u8> {
     match raw {
-        0 => Some(255),
+        0 => Some(IGNORE),
         1..=16 => Some(raw as u8),
         _ => None,
     }
@@ -155,11 +156,11 @@ pub fn write_sparse_occupancy(path: &Path, dense: &[u8]) -> Result<(), DataError
     }
     let mut flat: Vec<i64> = Vec::new();
     for (lin, &c) in dense.iter().enumerate() {
-        if c == 0 {
+        if c == EMPTY {
             continue;
         }
         let raw = match c {
-            255 => 0,
+            IGNORE => 0,
             1..=16 => c as i64,
             _ => {
                 return Err(DataError::InvalidArgument(format!(

@@ -15,6 +15,7 @@ pub use crate::labels::{downsample_labels, LearningMap};
 use occ_geometry::{
     mat3_inverse, mat4_identity, mat4_mul, CameraView, Mat4, PinholeCamera, VoxelGrid,
 };
+use occ_labels::IGNORE;
 use std::path::{Path, PathBuf};
 
 /// Grid dimensions `[X, Y, Z]` of the SSC volume.
@@ -23,8 +24,6 @@ pub const DIMS: [usize; 3] = [256, 256, 32];
 pub const NUM_VOXELS: usize = DIMS[0] * DIMS[1] * DIMS[2];
 /// Number of SSC classes including 0 = empty.
 pub const NUM_CLASSES: usize = 20;
-/// Label value ignored by losses and metrics.
-pub const IGNORE_LABEL: u8 = 255;
 /// Class names in class-index order.
 pub const CLASS_NAMES: [&str; 20] = [
     "empty",
@@ -47,29 +46,6 @@ pub const CLASS_NAMES: [&str; 20] = [
     "terrain",
     "pole",
     "traffic-sign",
-];
-/// Voxel class frequencies (MonoScene `params.py`, SparseOcc `utils/semkitti.py`; docs/formats.md §2.10).
-pub const CLASS_FREQUENCIES: [f64; 20] = [
-    5.41773033e9,
-    1.57835390e7,
-    1.25136e5,
-    1.18809e5,
-    6.46799e5,
-    8.21951e5,
-    2.62978e5,
-    2.83696e5,
-    2.0475e5,
-    6.16887030e7,
-    4.502961e6,
-    4.488365e7,
-    2.269923e6,
-    5.68402180e7,
-    1.57196520e7,
-    1.58442623e8,
-    2.061623e6,
-    3.69705220e7,
-    1.151988e6,
-    3.34146e5,
 ];
 /// Training sequences (SemanticKITTI `semantic-kitti.yaml`).
 pub const TRAIN_SEQUENCES: &[&str] = &["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"];
@@ -260,13 +236,7 @@ pub fn preprocess_labels(
     Ok(raw
         .iter()
         .zip(invalid)
-        .map(|(&r, &inv)| {
-            if inv == 1 {
-                IGNORE_LABEL
-            } else {
-                map.to_class(r)
-            }
-        })
+        .map(|(&r, &inv)| if inv == 1 { IGNORE } else { map.to_class(r) })
         .collect())
 }
 

@@ -13,8 +13,10 @@
 //! renderer are luminance-only (multiplicative on all channels) up to 50 m, so the chromaticity
 //! of a pixel identifies the class of the surface it shows.
 
-/// Empty space.
-pub const EMPTY: u8 = 0;
+use occ_labels::IGNORE;
+
+/// Empty space (the label convention's [`occ_labels::EMPTY`]).
+pub const EMPTY: u8 = occ_labels::EMPTY;
 /// SemanticKITTI learning class 1.
 pub const CAR: u8 = 1;
 /// SemanticKITTI learning class 2.
@@ -107,7 +109,7 @@ pub fn kitti_learning_class(c: u8) -> u8 {
         0..=19 => c,
         BUS | TRAILER | CONSTRUCTION_VEHICLE => OTHER_VEHICLE,
         BARRIER => FENCE,
-        _ => 255,
+        _ => IGNORE,
     }
 }
 
@@ -203,7 +205,7 @@ mod tests {
     fn mappings_cover_every_class() {
         for c in 1..NUM_SCENE_CLASSES as u8 {
             let l = kitti_learning_class(c);
-            assert!(l <= 19 || l == 255);
+            assert!(l <= 19 || l == IGNORE);
             let n = nuscenes_class(c);
             assert!((1..=16).contains(&n), "class {c} -> nuScenes {n}");
             if c > 19 {

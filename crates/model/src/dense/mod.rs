@@ -15,13 +15,15 @@
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::ModelBackend;
-use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
+use crate::loss::{cross_entropy_weighted, LossKey};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
+use crate::profile::Stage;
 use crate::targets::{check_input, targets_at};
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
+use occ_labels::IGNORE;
 use occ_sparse::norm::SparseBatchNorm;
 use occ_sparse::{full_grid_coords, SparseConv3d, SparseConv3dConfig, SparseTensor};
 
@@ -157,7 +159,7 @@ impl<B: ModelBackend> DenseBaseline<B> {
         let [_, _, h, w] = feats.dims();
         let lss_out = self.lss.forward(feats, stride, batch)?;
         let x = lss_out.splat_dense()?;
-        crate::profile::mark("lss", &x);
+        crate::profile::mark(Stage::Lss, &x);
         let [b, c, dx, dy, dz] = x.dims();
         let coords = full_grid_coords(b, [dx, dy, dz]);
         let feats = x.permute([0, 2, 3, 4, 1]).reshape([b * dx * dy * dz, c]);
@@ -165,10 +167,10 @@ impl<B: ModelBackend> DenseBaseline<B> {
         for (conv, norm) in self.convs.iter().zip(&self.norms) {
             t = norm.forward(conv.forward(t)?)?.map_feats(relu)?;
         }
-        crate::profile::mark("dense_encoder", t.feats());
+        crate::profile::mark(Stage::DenseEncoder, t.feats());
         let coords = t.coords().to_vec();
         let logits = crate::profile::linear(&self.head, t.into_feats());
-        crate::profile::mark("head", &logits);
+        crate::profile::mark(Stage::Head, &logits);
         let hit = lss_out.frustum.hit_voxels().0.len();
         let out = ModelOutput {
             coords,
@@ -204,16 +206,16 @@ impl<B: Backend> DenseOutput<B> {
         &self,
         batch: &Batch<B>,
         class_weights: &[f64],
-    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+    ) -> Result<Vec<(LossKey, Tensor<B, 1>)>, ModelError> {
         let labels = targets_at(batch, self.aux.full_dims, self.aux.downsample)?;
         let flat: Vec<u8> = labels.into_iter().flatten().collect();
         let mut out = vec![(
-            "ce".to_string(),
-            cross_entropy_weighted(self.out.logits.clone(), &flat, class_weights, IGNORE_LABEL)?,
+            LossKey::Ce,
+            cross_entropy_weighted(self.out.logits.clone(), &flat, class_weights, IGNORE)?,
         )];
         if let Some(t) = &self.aux.depth_targets {
             out.push((
-                "depth".to_string(),
+                LossKey::Depth,
                 depth_loss(self.aux.depth_logits.clone(), t)?.mul_scalar(self.aux.depth_weight),
             ));
         }

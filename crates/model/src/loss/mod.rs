@@ -24,12 +24,14 @@
 
 pub mod ce;
 pub mod depth;
+pub mod keys;
 pub mod lovasz;
 pub mod mask;
 pub mod scal;
 
 pub use ce::{cross_entropy, cross_entropy_weighted};
 pub use depth::{depth_bce, downsample_depth_min, DepthBinRule, DepthBins};
+pub use keys::{LossKey, MaskTerm, OccTerm};
 pub use lovasz::{lovasz_grad, lovasz_softmax};
 pub use mask::{dice_loss, dice_per_mask, mask_bce, mask_bce_per_mask};
 pub use scal::{geo_scal_loss, geo_scal_loss_probs, sem_scal_loss, sem_scal_loss_probs};
@@ -37,37 +39,7 @@ pub use scal::{geo_scal_loss, geo_scal_loss_probs, sem_scal_loss, sem_scal_loss_
 use crate::error::ModelError;
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
-
-/// Label of voxels that are not supervised (docs/formats.md §2.4-§2.5: invalid / unknown voxels).
-pub const IGNORE_LABEL: u8 = 255;
-
-/// Class index of empty space (docs/formats.md §1).
-pub const EMPTY_CLASS: u8 = 0;
-
-/// SemanticKITTI voxel class frequencies, in class order empty, car, …, traffic-sign (docs/formats.md §2.10,
-/// MonoScene `data/semantic_kitti/params.py`).
-pub const SEMANTIC_KITTI_CLASS_FREQUENCIES: [f64; 20] = [
-    5.41773033e9,
-    1.57835390e7,
-    1.25136e5,
-    1.18809e5,
-    6.46799e5,
-    8.21951e5,
-    2.62978e5,
-    2.83696e5,
-    2.0475e5,
-    6.16887030e7,
-    4.502961e6,
-    4.488365e7,
-    2.269923e6,
-    5.68402180e7,
-    1.57196520e7,
-    1.58442623e8,
-    2.061623e6,
-    3.69705220e7,
-    1.151988e6,
-    3.34146e5,
-];
+use occ_labels::{EMPTY, IGNORE, SEMANTIC_KITTI_CLASS_FREQUENCIES};
 
 /// MonoScene cross-entropy class weights `1 / ln(f + 0.001)` from
 /// [`SEMANTIC_KITTI_CLASS_FREQUENCIES`] (docs/losses.md §2; `0.0446` for empty … `0.0786` for traffic-sign).
@@ -115,12 +87,12 @@ pub struct OccLossWeights {
 
 /// The occupancy loss `L_occ = L_ce + L_lovasz + L_geo_scal + L_sem_scal` (paper Eq. `loss_occ`,
 /// docs/losses.md §2-§4) with unit weights, on voxel logits `[N, C]` and labels (class 0 empty, 255 ignored).
-/// Returns the named terms `ce`, `lovasz`, `geo_scal`, `sem_scal` (sum them for the total).
+/// Returns the terms ([`OccTerm`]: `ce`, `lovasz`, `geo_scal`, `sem_scal`; sum them for the total).
 pub fn occ_loss<B: Backend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     class_weights: &[f64],
-) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+) -> Result<Vec<(OccTerm, Tensor<B, 1>)>, ModelError> {
     occ_loss_weighted(logits, labels, class_weights, &OccLossWeights::new())
 }
 
@@ -130,25 +102,25 @@ pub fn occ_loss_weighted<B: Backend>(
     labels: &[u8],
     class_weights: &[f64],
     weights: &OccLossWeights,
-) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
-    check_labels(&logits, labels, IGNORE_LABEL, "occ_loss")?;
+) -> Result<Vec<(OccTerm, Tensor<B, 1>)>, ModelError> {
+    check_labels(&logits, labels, IGNORE, "occ_loss")?;
     let mut out = Vec::with_capacity(4);
     if weights.ce != 0.0 {
-        let l = cross_entropy_weighted(logits.clone(), labels, class_weights, IGNORE_LABEL)?;
-        out.push(("ce".to_string(), l.mul_scalar(weights.ce)));
+        let l = cross_entropy_weighted(logits.clone(), labels, class_weights, IGNORE)?;
+        out.push((OccTerm::Ce, l.mul_scalar(weights.ce)));
     }
     let probs = softmax(logits, 1);
     if weights.lovasz != 0.0 {
-        let l = lovasz_softmax(probs.clone(), labels, IGNORE_LABEL)?;
-        out.push(("lovasz".to_string(), l.mul_scalar(weights.lovasz)));
+        let l = lovasz_softmax(probs.clone(), labels, IGNORE)?;
+        out.push((OccTerm::Lovasz, l.mul_scalar(weights.lovasz)));
     }
     if weights.geo_scal != 0.0 {
-        let l = geo_scal_loss_probs(probs.clone(), labels, EMPTY_CLASS, IGNORE_LABEL)?;
-        out.push(("geo_scal".to_string(), l.mul_scalar(weights.geo_scal)));
+        let l = geo_scal_loss_probs(probs.clone(), labels, EMPTY, IGNORE)?;
+        out.push((OccTerm::GeoScal, l.mul_scalar(weights.geo_scal)));
     }
     if weights.sem_scal != 0.0 {
-        let l = sem_scal_loss_probs(probs, labels, IGNORE_LABEL)?;
-        out.push(("sem_scal".to_string(), l.mul_scalar(weights.sem_scal)));
+        let l = sem_scal_loss_probs(probs, labels, IGNORE)?;
+        out.push((OccTerm::SemScal, l.mul_scalar(weights.sem_scal)));
     }
     Ok(out)
 }

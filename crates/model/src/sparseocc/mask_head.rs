@@ -28,6 +28,7 @@
 //!    sites; the model output carries `ln(score)` as logits (same argmax).
 
 use crate::error::ModelError;
+use crate::loss::{LossKey, MaskTerm};
 use crate::sparseocc::hungarian::hungarian;
 use crate::sparseocc::pyramid::parent_coord;
 use burn::module::{Initializer, Param};
@@ -35,6 +36,7 @@ use burn::nn::{GroupNorm, GroupNormConfig, LayerNorm, LayerNormConfig, Linear, L
 use burn::prelude::*;
 use burn::tensor::activation::{log_softmax, relu, sigmoid, softmax};
 use burn::tensor::TensorData;
+use occ_labels::IGNORE;
 use occ_sparse::{Coord, SparseTensor};
 use std::collections::HashMap;
 
@@ -761,7 +763,7 @@ impl SplitMix {
 /// `(f_max/f_c)^0.25` frequency weights; Efraimidis–Spirakis keys, seeded by the labels so the draw is
 /// deterministic per frame). Sorted ascending.
 pub fn sample_points(labels: &[u8], class_weights: &[f64], num_points: usize) -> Vec<usize> {
-    let valid: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] != 255).collect();
+    let valid: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] != IGNORE).collect();
     if valid.len() <= num_points {
         return valid;
     }
@@ -809,7 +811,7 @@ impl<B: Backend> HeadOutput<B> {
         dims: [usize; 3],
         class_weights: &[f64],
         weights: &SetLossWeights,
-    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+    ) -> Result<Vec<(LossKey, Tensor<B, 1>)>, ModelError> {
         let nc = class_weights.len();
         let [dx, dy, dz] = dims;
         let n_pred = self.items.first().map(|i| i.predictions.len()).unwrap_or(0);
@@ -829,7 +831,7 @@ impl<B: Backend> HeadOutput<B> {
                     lab.len()
                 )));
             }
-            if let Some(&bad) = lab.iter().find(|&&l| l != 255 && l as usize >= nc) {
+            if let Some(&bad) = lab.iter().find(|&&l| l != IGNORE && l as usize >= nc) {
                 return Err(ModelError::Input(format!(
                     "mask_head.rs: label {bad} >= {nc} classes"
                 )));
@@ -864,7 +866,7 @@ impl<B: Backend> HeadOutput<B> {
                 .map(|v| col_of.get(v).copied().unwrap_or(nk))
                 .collect();
             let mut present = vec![false; nc];
-            for &l in lab.iter().filter(|&&l| l != 255) {
+            for &l in lab.iter().filter(|&&l| l != IGNORE) {
                 present[l as usize] = true;
             }
             let classes: Vec<usize> = (0..nc).filter(|&c| present[c]).collect();
@@ -952,14 +954,13 @@ impl<B: Backend> HeadOutput<B> {
         }
         let mut out = Vec::new();
         for (pi, s) in sums.into_iter().enumerate() {
-            let prefix = if pi + 1 == n_pred {
-                String::new()
-            } else {
-                format!("d{pi}.")
-            };
-            for (name, t) in ["mask_cls", "mask_bce", "mask_dice"].iter().zip(s) {
+            let aux = (pi + 1 != n_pred).then_some(pi);
+            for (term, t) in [MaskTerm::Class, MaskTerm::Bce, MaskTerm::Dice]
+                .into_iter()
+                .zip(s)
+            {
                 if let Some(t) = t {
-                    out.push((format!("{prefix}{name}"), t));
+                    out.push((LossKey::Mask { aux, term }, t));
                 }
             }
         }

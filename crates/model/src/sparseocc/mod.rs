@@ -19,9 +19,10 @@ pub mod pyramid;
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::ModelBackend;
-use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
+use crate::loss::{cross_entropy_weighted, LossKey};
 use crate::lss::{depth_loss, depth_targets, Lss, LssConfig};
 use crate::output::ModelOutput;
+use crate::profile::Stage;
 use crate::sparseocc::mask_head::{
     HeadOutput, MaskHead, MaskHeadConfig, MemoryLevel, SetLossWeights,
 };
@@ -29,6 +30,7 @@ use crate::sparseocc::propagator::{PropagatorConfig, SparseLatentPropagator};
 use crate::sparseocc::pyramid::{PyramidConfig, SparsePyramid};
 use crate::targets::{check_input, targets_at};
 use burn::prelude::*;
+use occ_labels::IGNORE;
 use occ_sparse::Coord;
 
 /// Configuration of [`SparseOcc`]. Defaults are the official SemanticKITTI settings (docs/reference_models.md §1);
@@ -251,18 +253,18 @@ impl<B: ModelBackend> SparseOcc<B> {
         let [_, _, h, w] = feats.dims();
         let lss_out = self.lss.forward(feats, stride, batch)?;
         let x = lss_out.splat_sparse()?;
-        crate::profile::mark("lss", x.feats());
+        crate::profile::mark(Stage::Lss, x.feats());
         let mut stats = vec![
             ("lss.points".to_string(), lss_out.frustum.num_points()),
             ("lss.voxels".to_string(), x.num_active()),
         ];
         let prop = self.propagator.forward(x)?;
         if let Some(l) = prop.levels.last() {
-            crate::profile::mark("propagator", l.feats());
+            crate::profile::mark(Stage::Propagator, l.feats());
         }
         stats.extend(prop.stats.iter().cloned());
         let pyr = self.pyramid.forward(&prop.levels)?;
-        crate::profile::mark("pyramid", pyr.mask_features.feats());
+        crate::profile::mark(Stage::Pyramid, pyr.mask_features.feats());
         let n_levels = pyr.levels.len();
         let memory: Vec<MemoryLevel<B>> = if n_levels > 1 {
             (1..n_levels)
@@ -279,7 +281,7 @@ impl<B: ModelBackend> SparseOcc<B> {
             }]
         };
         let head = self.head.forward(&pyr.mask_features, &memory)?;
-        crate::profile::mark("mask_head", &head.log_scores);
+        crate::profile::mark(Stage::MaskHead, &head.log_scores);
         stats.extend(head.stats.iter().cloned());
         stats.push(("out.sites".to_string(), head.kept_coords.len()));
         let out_dims = pyr.mask_features.spatial_shape();
@@ -327,7 +329,7 @@ impl<B: Backend> SoOutput<B> {
         &self,
         batch: &Batch<B>,
         class_weights: &[f64],
-    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+    ) -> Result<Vec<(LossKey, Tensor<B, 1>)>, ModelError> {
         let a = &self.aux;
         if class_weights.len() != a.num_classes {
             return Err(ModelError::Input(format!(
@@ -342,7 +344,7 @@ impl<B: Backend> SoOutput<B> {
             .set_losses(&labels, a.out_dims, class_weights, &a.weights)?;
         if let Some(t) = &a.depth_targets {
             out.push((
-                "depth".to_string(),
+                LossKey::Depth,
                 depth_loss(a.depth_logits.clone(), t)?.mul_scalar(a.depth_weight),
             ));
         }
@@ -355,18 +357,13 @@ impl<B: Backend> SoOutput<B> {
                     .get(c[0] as usize)
                     .and_then(|l| l.get((c[1] as usize * dy + c[2] as usize) * dz + c[3] as usize))
                     .copied()
-                    .unwrap_or(255)
+                    .unwrap_or(IGNORE)
             })
             .collect();
         out.push((
-            "coarse_ce".to_string(),
-            cross_entropy_weighted(
-                a.coarse_logits.clone(),
-                &site_labels,
-                class_weights,
-                IGNORE_LABEL,
-            )?
-            .mul_scalar(a.coarse_weight),
+            LossKey::CoarseCe,
+            cross_entropy_weighted(a.coarse_logits.clone(), &site_labels, class_weights, IGNORE)?
+                .mul_scalar(a.coarse_weight),
         ));
         Ok(out)
     }

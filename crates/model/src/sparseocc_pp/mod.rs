@@ -23,8 +23,9 @@ pub mod unet;
 use crate::batch::Batch;
 use crate::error::ModelError;
 use crate::kernels::ModelBackend;
-use crate::loss::{ce::cross_entropy, occ_loss};
+use crate::loss::{ce::cross_entropy, occ_loss, LossKey};
 use crate::output::ModelOutput;
+use crate::profile::Stage;
 use crate::sparseocc_pp::anchors::{column_floor_z_m, combined_gate};
 use crate::sparseocc_pp::anchors::{
     AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction,
@@ -42,9 +43,9 @@ use crate::sparseocc_pp::scf_head::{
     scf_targets, ScfDecomposition, ScfHead, ScfHeadConfig, ScfLearning, ScfPrediction, ScfTargets,
 };
 use crate::sparseocc_pp::unet::{SparseUNet, SparseUNetConfig};
-use crate::targets::downsample_labels;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
+use occ_labels::{downsample_monoscene, EMPTY, IGNORE};
 use occ_sparse::Coord;
 
 /// Resolution of the final logits.
@@ -221,6 +222,18 @@ impl SparseOccPPConfig {
     /// The image semantic head's configuration.
     pub fn sem2d_config(&self) -> Sem2dHeadConfig {
         Sem2dHeadConfig::new(self.feat_channels, self.num_classes)
+    }
+
+    /// Whether training reads the LiDAR scans: the depth gate, the image semantic head and the two
+    /// oracle diagnostics do.
+    pub fn reads_points_in_training(&self) -> bool {
+        self.depth_gate || self.sem2d_aux || self.depth_oracle || self.scan_oracle
+    }
+
+    /// Whether inference reads the LiDAR scan: only the oracle diagnostics do (they are no
+    /// camera-only models).
+    pub fn reads_points_at_test(&self) -> bool {
+        self.depth_oracle || self.scan_oracle
     }
 
     /// Checks every size and switch.
@@ -415,7 +428,7 @@ impl<B: ModelBackend> SparseOccPP<B> {
             oracle.as_ref(),
             scan.as_ref(),
         )?;
-        crate::profile::mark("anchors", gen.anchors.feats());
+        crate::profile::mark(Stage::Anchors, gen.anchors.feats());
         let mut stats = gen.stats;
         let anchors = gen.anchors;
         stats.push(("anchors".to_string(), anchors.num_active()));
@@ -436,7 +449,7 @@ impl<B: ModelBackend> SparseOccPP<B> {
             _ => (anchors, None),
         };
         stats.push(("completed".to_string(), completed.num_active()));
-        crate::profile::mark("scf+propagation", completed.feats());
+        crate::profile::mark(Stage::ScfPropagation, completed.feats());
 
         // DCA on the completed set (new voxels start from zero features).
         let device = completed.device();
@@ -476,9 +489,9 @@ impl<B: ModelBackend> SparseOccPP<B> {
             }
             None => x,
         };
-        crate::profile::mark("dca", &x);
+        crate::profile::mark(Stage::Dca, &x);
         let x = self.unet.forward(completed.with_feats(x)?)?;
-        crate::profile::mark("unet", x.feats());
+        crate::profile::mark(Stage::Unet, x.feats());
         let coords: Vec<Coord> = x.coords().to_vec();
         stats.push(("final".to_string(), coords.len()));
         let (coords, logits, out_dims, upsample) = match &self.subvoxel {
@@ -494,7 +507,7 @@ impl<B: ModelBackend> SparseOccPP<B> {
                 2,
             ),
         };
-        crate::profile::mark("head", &logits);
+        crate::profile::mark(Stage::Head, &logits);
         Ok(PPOutput {
             out: ModelOutput {
                 coords,
@@ -571,18 +584,19 @@ pub fn pp_targets<B: Backend>(
         )));
     }
     let mut cache: Vec<(usize, Vec<Vec<u8>>)> = Vec::new();
-    let mut grids_for = |ds: usize| -> Vec<Vec<u8>> {
+    let mut grids_for = |ds: usize| -> Result<Vec<Vec<u8>>, ModelError> {
         if let Some((_, g)) = cache.iter().find(|(f, _)| *f == ds) {
-            return g.clone();
+            return Ok(g.clone());
         }
-        let g: Vec<Vec<u8>> = target
+        let g = target
             .iter()
-            .map(|t| downsample_labels(t, full_dims, ds))
-            .collect();
+            .map(|t| downsample_monoscene(t, full_dims, ds))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| ModelError::Input(format!("targets: {e}")))?;
         cache.push((ds, g.clone()));
-        g
+        Ok(g)
     };
-    let half = grids_for(2);
+    let half = grids_for(2)?;
     let half_dims = full_dims.map(|d| d / 2);
     let labels = if out.out.upsample == 1 {
         lookup(&out.out.coords, target, full_dims)?
@@ -594,7 +608,7 @@ pub fn pp_targets<B: Backend>(
         let g = if lvl.factor == 2 {
             half.clone()
         } else {
-            grids_for(lvl.factor)
+            grids_for(lvl.factor)?
         };
         anchor_labels.push(lookup(&lvl.coords, &g, lvl.dims)?);
     }
@@ -636,7 +650,7 @@ impl<B: Backend> PPOutput<B> {
         batch: &Batch<B>,
         cfg: &SparseOccPPConfig,
         class_weights: &[f64],
-    ) -> Result<Vec<(String, Tensor<B, 1>)>, ModelError> {
+    ) -> Result<Vec<(LossKey, Tensor<B, 1>)>, ModelError> {
         if class_weights.len() != cfg.num_classes {
             return Err(ModelError::Input(format!(
                 "SparseOcc++ losses: {} class weights for {} classes",
@@ -648,8 +662,8 @@ impl<B: Backend> PPOutput<B> {
         let mut out = Vec::new();
         let any_valid = |l: &[u8]| l.iter().any(|&v| v != IGNORE);
         if any_valid(&t.labels) {
-            for (name, l) in occ_loss(self.out.logits.clone(), &t.labels, class_weights)? {
-                out.push((format!("occ.{name}"), l));
+            for (term, l) in occ_loss(self.out.logits.clone(), &t.labels, class_weights)? {
+                out.push((LossKey::Occ(term), l));
             }
         }
         if cfg.anchor_loss_weight != 0.0 {
@@ -658,7 +672,7 @@ impl<B: Backend> PPOutput<B> {
                 let labels = if cfg.anchor_unknown_as_empty {
                     unknown_as_empty = labels
                         .iter()
-                        .map(|&l| if l == IGNORE { 0 } else { l })
+                        .map(|&l| if l == IGNORE { EMPTY } else { l })
                         .collect();
                     &unknown_as_empty
                 } else {
@@ -667,9 +681,9 @@ impl<B: Backend> PPOutput<B> {
                 if !any_valid(labels) {
                     continue;
                 }
-                for (name, l) in occ_loss(lvl.logits.clone(), labels, class_weights)? {
+                for (term, l) in occ_loss(lvl.logits.clone(), labels, class_weights)? {
                     out.push((
-                        format!("anchor{i}.{name}"),
+                        LossKey::Anchor(i, term),
                         l.mul_scalar(cfg.anchor_loss_weight),
                     ));
                 }
@@ -678,14 +692,14 @@ impl<B: Backend> PPOutput<B> {
         if let Some(depth) = &self.depth {
             if cfg.depth_loss_weight != 0.0 {
                 if let Some(l) = depth.loss(batch)? {
-                    out.push(("depth".to_string(), l.mul_scalar(cfg.depth_loss_weight)));
+                    out.push((LossKey::Depth, l.mul_scalar(cfg.depth_loss_weight)));
                 }
             }
         }
         if let Some(sem) = &self.sem2d {
             if cfg.sem2d_loss_weight != 0.0 {
                 if let Some(l) = sem.loss(batch, class_weights)? {
-                    out.push(("sem2d".to_string(), l.mul_scalar(cfg.sem2d_loss_weight)));
+                    out.push((LossKey::Sem2d, l.mul_scalar(cfg.sem2d_loss_weight)));
                 }
             }
         }
@@ -693,19 +707,19 @@ impl<B: Backend> PPOutput<B> {
             if cfg.scf_loss_weight != 0.0 {
                 let parts = [
                     (
-                        "scf.planar",
+                        LossKey::ScfPlanar,
                         Some(&pred.planar),
                         Some(&tg.planar),
                         pred.s_max_planar,
                     ),
                     (
-                        "scf.vertical",
+                        LossKey::ScfVertical,
                         pred.vertical.as_ref(),
                         tg.vertical.as_ref(),
                         pred.s_max_vertical,
                     ),
                 ];
-                for (name, p, labels, s_max) in parts {
+                for (key, p, labels, s_max) in parts {
                     let (Some(p), Some(labels)) = (p, labels) else {
                         continue;
                     };
@@ -716,15 +730,13 @@ impl<B: Backend> PPOutput<B> {
                         ScfLearning::Bins => cross_entropy(p.clone(), labels, IGNORE)?,
                         ScfLearning::Regression => scf_l1(p, labels, s_max)?,
                     };
-                    out.push((name.to_string(), l.mul_scalar(cfg.scf_loss_weight)));
+                    out.push((key, l.mul_scalar(cfg.scf_loss_weight)));
                 }
             }
         }
         Ok(out)
     }
 }
-
-const IGNORE: u8 = 255;
 
 /// Mean `|p − (bin − s_max)|` over the anchors whose bin is not ignored (`p`: `[N, 1]`).
 fn scf_l1<B: Backend>(

@@ -20,6 +20,7 @@ use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use occ_geometry::scf::{scf_planar, scf_vertical};
+use occ_labels::{is_occupied, IGNORE};
 use occ_sparse::Coord;
 
 /// Planar + vertical components, or one isotropic scalar (ablation).
@@ -365,7 +366,7 @@ pub fn scf_targets(
                 lab.len()
             )));
         }
-        let occ: Vec<u8> = lab.iter().map(|&l| u8::from(l != 0 && l != 255)).collect();
+        let occ: Vec<u8> = lab.iter().map(|&l| u8::from(is_occupied(l))).collect();
         let geo = |e: occ_geometry::scf::ScfError| ModelError::Input(format!("SCF targets: {e}"));
         match decomposition {
             ScfDecomposition::Decomposed => {
@@ -381,9 +382,9 @@ pub fn scf_targets(
     let mut planar = Vec::with_capacity(coords.len());
     let mut vertical = Vec::with_capacity(coords.len());
     for &(b, l) in &lin {
-        if labels[b][l] == 255 {
-            planar.push(255);
-            vertical.push(255);
+        if labels[b][l] == IGNORE {
+            planar.push(IGNORE);
+            vertical.push(IGNORE);
         } else {
             planar.push(bin(planar_gt[b][l], s_max_planar));
             if decomposition == ScfDecomposition::Decomposed {

@@ -6,8 +6,8 @@ use crate::so_common;
 
 use burn::backend::{Autodiff, NdArray};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use occ_labels::downsample_monoscene;
 use occ_model::sparseocc_pp::SparseOccPPConfig;
-use occ_model::targets::downsample_labels;
 use so_common::*;
 use std::time::Instant;
 
@@ -60,7 +60,7 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
     // scene fills 2 voxels once upsampled), which is reported beside it.
     let full = tiny_grid().dims;
     let half = full.map(|d| d / 2);
-    let gt_half = downsample_labels(&gt, full, 2);
+    let gt_half = downsample_monoscene(&gt, full, 2).unwrap();
     let mut oracle = vec![0u8; gt.len()];
     for x in 0..full[0] {
         for y in 0..full[1] {
@@ -104,7 +104,7 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
         }
         let losses = out.losses(&batch, &cfg, &weights).unwrap();
         if step == 0 {
-            let names: Vec<&str> = losses.iter().map(|s| s.0.as_str()).collect();
+            let names: Vec<String> = losses.iter().map(|s| s.0.to_string()).collect();
             for n in [
                 "occ.ce",
                 "occ.lovasz",
@@ -115,7 +115,10 @@ fn sparseocc_pp_overfits_a_tiny_frame() {
                 "scf.planar",
                 "scf.vertical",
             ] {
-                assert!(names.contains(&n), "missing loss {n} in {names:?}");
+                assert!(
+                    names.contains(&n.to_string()),
+                    "missing loss {n} in {names:?}"
+                );
             }
         }
         let loss = losses

@@ -17,7 +17,7 @@ const NUM_CLASSES: usize = 4;
 const CLASS_WEIGHTS: [f64; NUM_CLASSES] = [1.0, 1.2, 1.5, 1.3];
 const STRIDE: usize = 4;
 
-fn total(losses: &[(String, Tensor<B, 1>)]) -> Tensor<B, 1> {
+fn total(losses: &[(occ_model::loss::LossKey, Tensor<B, 1>)]) -> Tensor<B, 1> {
     losses
         .iter()
         .map(|(_, l)| l.clone())
@@ -72,7 +72,7 @@ fn sparseocc_overfits_a_tiny_frame() {
         }
         let losses = out.losses(&batch, &CLASS_WEIGHTS).unwrap();
         if step == 0 {
-            let names: Vec<&str> = losses.iter().map(|s| s.0.as_str()).collect();
+            let names: Vec<String> = losses.iter().map(|s| s.0.to_string()).collect();
             for n in [
                 "mask_cls",
                 "mask_bce",
@@ -81,7 +81,10 @@ fn sparseocc_overfits_a_tiny_frame() {
                 "depth",
                 "coarse_ce",
             ] {
-                assert!(names.contains(&n), "missing loss {n} in {names:?}");
+                assert!(
+                    names.contains(&n.to_string()),
+                    "missing loss {n} in {names:?}"
+                );
             }
         }
         let loss = total(&losses);

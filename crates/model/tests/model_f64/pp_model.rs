@@ -6,6 +6,7 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use burn::tensor::TensorData;
+use occ_model::loss::LossKey;
 use occ_model::sparseocc_pp::anchors::{chain_anchor_count, occupancy_score, AnchorMode};
 use occ_model::sparseocc_pp::scf_head::{ScfDecomposition, ScfLearning};
 use occ_model::sparseocc_pp::{OutputResolution, PPOutput, SparseOccPP, SparseOccPPConfig};
@@ -250,7 +251,7 @@ fn subvoxel_output_predicts_the_children_at_full_resolution() {
         assert_eq!(l, target[b][(x * FULL_DIMS[1] + y) * FULL_DIMS[2] + z]);
     }
     let losses = out.losses(&batch, &full, &[1.0; 6]).expect("losses");
-    assert!(losses.iter().any(|(n, _)| n == "occ.ce"));
+    assert!(losses.iter().any(|(n, _)| n.to_string() == "occ.ce"));
     let grads = sum_all(&out).backward();
     assert_all_grads(&model, &grads);
 }
@@ -517,7 +518,7 @@ fn depth_gate_is_trained_by_the_gated_attention_and_the_lidar_depth() {
         o.losses(b, &cfg, &weights)
             .unwrap()
             .into_iter()
-            .map(|(n, _)| n)
+            .map(|(n, _)| n.to_string())
             .collect()
     };
     assert!(!names(&out, &batch).contains(&"depth".to_string()));
@@ -536,7 +537,7 @@ fn depth_gate_is_trained_by_the_gated_attention_and_the_lidar_depth() {
     let losses = out.losses(&batch, &cfg, &weights).unwrap();
     let (_, d) = losses
         .iter()
-        .find(|(n, _)| n == "depth")
+        .find(|(n, _)| n.to_string() == "depth")
         .expect("depth term with points");
     let d: f64 = d.clone().into_scalar();
     assert!(d.is_finite() && d > 0.0, "{d}");
@@ -563,8 +564,10 @@ fn anchor_unknown_as_empty_supervises_ignored_candidates_as_empty() {
     let feats = features::<NB>(1, 141, &device);
     let out = model.forward(&feats, &STRIDES, &batch).unwrap();
     let weights: Vec<f64> = (0..cfg.num_classes).map(|c| 1.0 + 0.1 * c as f64).collect();
-    let as_map = |l: Vec<(String, Tensor<NB, 1>)>| -> Vec<(String, f64)> {
-        l.into_iter().map(|(n, t)| (n, t.into_scalar())).collect()
+    let as_map = |l: Vec<(LossKey, Tensor<NB, 1>)>| -> Vec<(String, f64)> {
+        l.into_iter()
+            .map(|(n, t)| (n.to_string(), t.into_scalar()))
+            .collect()
     };
     let plain = as_map(out.losses(&batch, &cfg, &weights).unwrap());
     let cfg_ue = cfg.clone().with_anchor_unknown_as_empty(true);
@@ -597,7 +600,7 @@ fn anchor_unknown_as_empty_supervises_ignored_candidates_as_empty() {
             )
             .unwrap()
             .into_iter()
-            .find(|(n, _)| n == term)
+            .find(|(n, _)| n.as_str() == term)
             .unwrap()
             .1
             .into_scalar();
@@ -633,7 +636,7 @@ fn sem2d_aux_supervises_the_finest_image_features() {
         out.losses(b, &cfg, &weights)
             .unwrap()
             .into_iter()
-            .find(|(n, _)| n == "sem2d")
+            .find(|(n, _)| n.to_string() == "sem2d")
             .map(|(_, l)| l)
     };
     assert!(term(&batch).is_none(), "sem2d term without points");

@@ -9,6 +9,7 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::prelude::*;
 use burn::tensor::TensorData;
 use occ_geometry::mat4_inverse;
+use occ_labels::downsample_mode;
 use occ_model::loss::cross_entropy_weighted;
 use occ_model::lss::{depth_targets, feature_pixel_center, LssConfig};
 use occ_model::sparseocc::hungarian::hungarian;
@@ -17,7 +18,6 @@ use occ_model::sparseocc::mask_head::{
 };
 use occ_model::sparseocc::propagator::PropagatorConfig;
 use occ_model::sparseocc::pyramid::{interpolate, interpolation_weights};
-use occ_model::targets::downsample_labels_mode;
 use occ_sparse::{Coord, SparseTensor};
 use rand::Rng;
 use so_common::*;
@@ -669,7 +669,7 @@ fn interpolation_reproduces_linear_fields_and_block_means() {
 #[test]
 fn mode_downsampling_follows_the_official_rule() {
     let dims = [2, 2, 2];
-    let ds = |v: [u8; 8]| downsample_labels_mode(&v, dims, 2).unwrap()[0];
+    let ds = |v: [u8; 8]| downsample_mode(&v, dims, 2).unwrap()[0];
     assert_eq!(ds([0; 8]), 0);
     assert_eq!(
         ds([0, 0, 0, 0, 0, 0, 0, 5]),
@@ -693,11 +693,8 @@ fn mode_downsampling_follows_the_official_rule() {
     let mut l = vec![0u8; 4 * 2 * 2];
     l[(2 * 2) * 2] = 3; // x = 2 -> block 1
     l[(2 * 2 + 1) * 2] = 3;
-    assert_eq!(
-        downsample_labels_mode(&l, [4, 2, 2], 2).unwrap(),
-        vec![0, 3]
-    );
-    assert!(downsample_labels_mode(&l, [4, 2, 3], 2).is_err());
+    assert_eq!(downsample_mode(&l, [4, 2, 2], 2).unwrap(), vec![0, 3]);
+    assert!(downsample_mode(&l, [4, 2, 3], 2).is_err());
 }
 
 #[test]

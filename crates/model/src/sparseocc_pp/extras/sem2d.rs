@@ -28,11 +28,12 @@
 
 use crate::batch::Batch;
 use crate::error::ModelError;
-use crate::loss::{cross_entropy_weighted, IGNORE_LABEL};
+use crate::loss::cross_entropy_weighted;
 use crate::lss::feature_pixel_of_point;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::prelude::*;
+use occ_labels::{is_occupied, IGNORE};
 
 /// Configuration of [`Sem2dHead`].
 #[derive(Config, Debug)]
@@ -119,7 +120,7 @@ impl<B: Backend> Sem2dMap<B> {
                 t.len()
             )));
         }
-        if t.iter().all(|&l| l == 255) {
+        if t.iter().all(|&l| l == IGNORE) {
             return Ok(None);
         }
         let rows = self
@@ -127,7 +128,7 @@ impl<B: Backend> Sem2dMap<B> {
             .clone()
             .permute([0, 2, 3, 1])
             .reshape([n * h * w, k]);
-        cross_entropy_weighted(rows, &t, class_weights, IGNORE_LABEL).map(Some)
+        cross_entropy_weighted(rows, &t, class_weights, IGNORE).map(Some)
     }
 }
 
@@ -154,7 +155,7 @@ pub fn sem2d_targets<B: Backend>(
     }
     let grid = batch.grid;
     let img_hw = batch.image_hw();
-    let mut best = vec![(f64::INFINITY, 255u8); b * v * h * w];
+    let mut best = vec![(f64::INFINITY, IGNORE); b * v * h * w];
     for (bi, (pts, target)) in points.iter().zip(targets).enumerate() {
         if target.len() != grid.num_voxels() {
             return Err(ModelError::Input(format!(
@@ -176,7 +177,7 @@ pub fn sem2d_targets<B: Backend>(
                 let p = [p[0] as f64, p[1] as f64, p[2] as f64];
                 let ijk = grid.voxel_of_point_m(p)?;
                 let l = target[grid.linear_index(ijk)];
-                (l != 0 && l != 255).then_some((p, l))
+                is_occupied(l).then_some((p, l))
             })
             .collect();
         for (vi, cam) in batch.cameras[bi].iter().enumerate() {
@@ -239,7 +240,7 @@ mod tests {
         set([6.5, 0.0, 0.0], 3);
         set([4.5, 0.0, 0.0], 5);
         // Up-left of the axis (pixel (1, 1)): only an ignored voxel.
-        set([4.5, 1.5, 1.5], 255);
+        set([4.5, 1.5, 1.5], IGNORE);
         let points = vec![vec![
             [6.5f32, 0.0, 0.0],
             [4.5, 0.0, 0.0],
@@ -255,12 +256,12 @@ mod tests {
             points: Some(points),
         };
         let t = sem2d_targets(&batch, 4, 4, 1).unwrap().unwrap();
-        let mut expected = vec![255u8; 16];
+        let mut expected = vec![IGNORE; 16];
         expected[2 * 4 + 2] = 5;
         assert_eq!(t, expected);
         // At stride 2 the same point lands in feature pixel (1, 1).
         let t2 = sem2d_targets(&batch, 2, 2, 2).unwrap().unwrap();
-        assert_eq!(t2, vec![255, 255, 255, 5]);
+        assert_eq!(t2, vec![IGNORE, IGNORE, IGNORE, 5]);
         // No points: no targets.
         let mut nopts = batch.clone();
         nopts.points = None;
