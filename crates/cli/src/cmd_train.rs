@@ -37,6 +37,11 @@ pub struct TrainArgs {
     /// Override the number of optimizer steps.
     #[arg(long)]
     pub steps: Option<usize>,
+    /// Data-parallel workers (`train.devices`): each trains a replica on batch_size / N frames of
+    /// every step, gradients all-reduced before the clipping and the optimizer step. On the CPU the
+    /// workers share the machine's threads.
+    #[arg(long)]
+    pub devices: Option<usize>,
 }
 
 /// Resolves the run configuration from the arguments.
@@ -74,6 +79,9 @@ pub fn resolve_config(args: &TrainArgs) -> Result<RunConfig> {
     }
     if let Some(n) = args.steps {
         cfg.train.steps = n;
+    }
+    if let Some(n) = args.devices {
+        cfg.train.devices = n;
     }
     cfg.validate().map_err(anyhow::Error::msg)?;
     if cfg.data.train_sequences.is_empty() {

@@ -77,8 +77,15 @@ impl Bars {
                 if let Some(pb) = self.check.take() {
                     pb.finish_and_clear();
                 }
+                let workers = match cfg.train.devices {
+                    1 => String::new(),
+                    n => format!(
+                        ", {n} data-parallel workers of {} frames",
+                        cfg.train.batch_size / n
+                    ),
+                };
                 eprintln!(
-                    "training {} on {frames} frames ({}), {} steps, {parameters} parameters, {}",
+                    "training {} on {frames} frames ({}), {} steps, {parameters} parameters, {}{workers}",
                     cfg.model.kind.name(),
                     cfg.data.train_sequences.join(","),
                     cfg.train.steps,
@@ -86,11 +93,12 @@ impl Bars {
                 );
             }
             RunProgress::Step { step, total, log } => {
+                let rate = log.frames as f64 / log.seconds.max(1e-9);
                 advance(&mut self.steps, "train", step, total)
-                    .set_message(format!("loss {:.3}", log.loss));
+                    .set_message(format!("loss {:.3}, {rate:.2} frames/s", log.loss));
                 if std::env::var_os("CI").is_some() && (step % 25 == 0 || step == total) {
                     eprintln!(
-                        "  step {step}/{total} loss {:.4} ({:.2} s/step)",
+                        "  step {step}/{total} loss {:.4} ({:.2} s/step, {rate:.2} frames/s)",
                         log.loss, log.seconds
                     );
                 }

@@ -28,6 +28,9 @@ pub enum TrainError {
         /// Which terms.
         detail: String,
     },
+    /// A data-parallel run failed: a collective operation, or the workers disagree.
+    #[error("data-parallel training: {0}")]
+    Parallel(String),
     /// Evaluation error.
     #[error(transparent)]
     Eval(#[from] occ_eval::EvalError),

@@ -11,6 +11,7 @@ pub mod grads;
 pub mod infer;
 pub mod log;
 pub mod mirror;
+pub mod parallel;
 pub mod run;
 pub mod schedule;
 pub mod shift;

@@ -9,6 +9,7 @@ use crate::config::RunConfig;
 use crate::dataset::{collate, Dataset, Sample};
 use crate::error::TrainError;
 use crate::grads::{clip_global_norm, split_no_decay};
+use crate::parallel::{abort_collective, all_reduce_grads, fingerprint, Peer};
 use crate::schedule::WarmupCosine;
 use burn::module::AutodiffModule;
 use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
@@ -61,6 +62,11 @@ pub struct TrainConfig {
     /// Training image augmentation (random resize/crop/flip/rotate).
     #[serde(default)]
     pub augment: bool,
+    /// Data-parallel workers (`sparseocc train --devices N`), each with its own replica of the
+    /// network and a shard of `batch_size / devices` frames of every step ([`crate::parallel`]).
+    /// On the CPU each worker gets `threads / devices` of the rayon threads.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub devices: usize,
 }
 
 impl TrainConfig {
@@ -72,6 +78,7 @@ impl TrainConfig {
             ("batch_size", self.batch_size),
             ("checkpoint_every", self.checkpoint_every),
             ("log_every", self.log_every),
+            ("devices", self.devices),
         ];
         for (key, v) in positive {
             if v == 0 {
@@ -106,12 +113,22 @@ impl TrainConfig {
                 return Err(format!("train.{key} = {v}: must be {what}"));
             }
         }
+        if !self.batch_size.is_multiple_of(self.devices) {
+            return Err(format!(
+                "train.batch_size = {} is not a multiple of train.devices = {}: every worker trains on \
+                 batch_size / devices frames",
+                self.batch_size, self.devices
+            ));
+        }
         Ok(())
     }
 }
 
 fn one() -> usize {
     1
+}
+fn is_one(v: &usize) -> bool {
+    *v == 1
 }
 fn wd() -> f64 {
     0.01
@@ -141,6 +158,8 @@ pub struct StepLog {
     pub grad_norm: f64,
     /// Wall time of the step in seconds.
     pub seconds: f64,
+    /// Frames of the step, over all workers (the global batch).
+    pub frames: usize,
 }
 
 /// The state saved beside the weights.
@@ -204,15 +223,18 @@ impl CheckpointPaths {
     }
 }
 
-/// Loads the samples of `idx` in parallel.
+/// Loads the samples of `idx` in parallel; `idx[j]` is frame `first + j` of the step's batch (its
+/// augmentation is drawn from that position, so a worker's shard is augmented as on one device).
 fn load_samples(
     ds: &Dataset,
     idx: &[usize],
+    first: usize,
     augment_seed: Option<u64>,
 ) -> Result<Vec<Sample>, TrainError> {
     idx.par_iter()
         .enumerate()
-        .map(|(j, &i)| match augment_seed {
+        .map(|(j, &i)| (first + j, i))
+        .map(|(j, i)| match augment_seed {
             Some(s) => {
                 let mut r = ChaCha8Rng::seed_from_u64(s ^ (j as u64).wrapping_mul(0x9E37_79B9));
                 ds.load(i, Some(&mut r))
@@ -234,10 +256,28 @@ fn batch_indices(n: usize, batch: usize, seed: u64, step: usize) -> Vec<usize> {
     (0..batch).map(|j| order[(k + j) % n]).collect()
 }
 
+/// What every worker of a run shares: the settings, the data, the run folder and where it resumes.
+struct Setup<'a, B: Backend> {
+    cfg: &'a TrainConfig,
+    ds: &'a Dataset,
+    device: &'a B::Device,
+    ck: CheckpointPaths,
+    log_path: PathBuf,
+    resume_state: Option<TrainState>,
+}
+
+/// One step's forward pass on a worker's frames: the total loss (to differentiate), its value and
+/// its terms.
+type StepLoss<B> = (Tensor<B, 1>, f64, Vec<(String, f64)>);
+
 /// Trains `model` on `ds`, writing checkpoints and logs under `run`. With `resume`, continues from
 /// `run/checkpoint` if one exists. `on_step(step, total, &log)` reports progress.
+///
+/// With `cfg.devices` > 1 the run is data-parallel ([`crate::parallel`]): that many workers on
+/// threads of this process, each with a replica of `model` on `device` and its own rayon pool;
+/// `on_step` is called on this thread with worker 0's log (the mean loss of all workers).
 pub fn train<B, M>(
-    mut model: M,
+    model: M,
     cfg: &TrainConfig,
     ds: &Dataset,
     run: &Path,
@@ -267,8 +307,215 @@ where
     } else {
         None
     };
+    if let Some(state) = &resume_state {
+        if state.step > cfg.steps {
+            return Err(TrainError::Checkpoint(format!(
+                "{}: the checkpoint is at step {} but the run has {} steps; give --steps {} or more",
+                ck.state().display(),
+                state.step,
+                cfg.steps,
+                state.step
+            )));
+        }
+    }
     std::fs::create_dir_all(run).map_err(io_err(run))?;
     remove_stale_temporaries(&ck.dir);
+    let log_path = run.join("train_log.csv");
+    // The log holds each step once: a fresh run starts it anew; a resumed run keeps the header and
+    // the rows up to the checkpoint's step (rows logged after it, by the interrupted process, are
+    // redone and logged again).
+    truncate_log(&log_path, resume_state.as_ref().map_or(0, |s| s.step))?;
+    let setup = Setup {
+        cfg,
+        ds,
+        device,
+        ck,
+        log_path,
+        resume_state,
+    };
+    if cfg.devices <= 1 {
+        return train_worker::<B, M>(model, &setup, None, on_step);
+    }
+    train_workers::<B, M>(model, &setup, on_step)
+}
+
+/// Runs `setup.cfg.devices` workers on scoped threads (see [`train`]); returns worker 0's network
+/// and summary, or the first worker's own error (rather than the others' "a worker stopped").
+fn train_workers<B, M>(
+    model: M,
+    setup: &Setup<B>,
+    on_step: &mut dyn FnMut(usize, usize, &StepLog),
+) -> Result<(M, TrainSummary), TrainError>
+where
+    B: AutodiffBackend,
+    M: AutodiffModule<B> + OccNetwork<B>,
+{
+    let n = setup.cfg.devices;
+    let threads = (rayon::current_num_threads() / n).max(1);
+    // burn initialises parameters lazily, and a clone of an uninitialised parameter draws its own
+    // values: touch every parameter (the fingerprint reads them all) before making the replicas.
+    fingerprint::<B, M>(&model);
+    // A clean collective: a run that failed earlier in this process may have left workers in it.
+    abort_collective::<B::InnerBackend>();
+    let (tx, rx) = std::sync::mpsc::channel::<StepLog>();
+    let results = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..n)
+            .map(|rank| {
+                let model = model.clone();
+                let tx = tx.clone();
+                std::thread::Builder::new()
+                    .name(format!("train-worker-{rank}"))
+                    .spawn_scoped(s, move || {
+                        let run = || -> Result<Option<(M, TrainSummary)>, TrainError> {
+                            let pool = rayon::ThreadPoolBuilder::new()
+                                .num_threads(threads)
+                                .thread_name(move |i| format!("train-{rank}-{i}"))
+                                .build()
+                                .map_err(|e| TrainError::Parallel(format!("worker {rank}: {e}")))?;
+                            pool.install(|| {
+                                let peer =
+                                    Peer::<B::InnerBackend>::register(rank, n, setup.device)?;
+                                let mut report = |_: usize, _: usize, log: &StepLog| {
+                                    let _ = tx.send(log.clone());
+                                };
+                                let r =
+                                    train_worker::<B, M>(model, setup, Some(&peer), &mut report);
+                                if r.is_ok() {
+                                    peer.finish();
+                                }
+                                r.map(|(m, summary)| (rank == 0).then_some((m, summary)))
+                            })
+                        };
+                        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(run))
+                            .unwrap_or_else(|panic| {
+                                let msg = panic
+                                    .downcast_ref::<String>()
+                                    .cloned()
+                                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                                    .unwrap_or_default();
+                                Err(TrainError::Parallel(format!(
+                                    "worker {rank} panicked: {msg}"
+                                )))
+                            });
+                        if r.is_err() {
+                            // Release the workers waiting for this one.
+                            abort_collective::<B::InnerBackend>();
+                        }
+                        r
+                    })
+            })
+            .collect();
+        drop(tx);
+        for log in rx {
+            on_step(log.step, setup.cfg.steps, &log);
+        }
+        handles
+            .into_iter()
+            .map(|h| match h {
+                Ok(h) => h.join().unwrap_or_else(|_| {
+                    Err(TrainError::Parallel("a worker thread panicked".into()))
+                }),
+                Err(e) => Err(TrainError::Parallel(format!(
+                    "starting a worker thread: {e}"
+                ))),
+            })
+            .collect::<Vec<_>>()
+    });
+    let mut first_err = None;
+    let mut out = None;
+    for r in results {
+        match r {
+            Ok(Some(x)) => out = Some(x),
+            Ok(None) => {}
+            // A worker's own error wins over the "a worker stopped" of the others.
+            Err(e) => {
+                let replace = match &first_err {
+                    None => true,
+                    Some(TrainError::Parallel(_)) => !matches!(e, TrainError::Parallel(_)),
+                    Some(_) => false,
+                };
+                if replace {
+                    first_err = Some(e);
+                }
+            }
+        }
+    }
+    match (first_err, out) {
+        (Some(e), _) => Err(e),
+        (None, Some(x)) => Ok(x),
+        (None, None) => Err(TrainError::Parallel("worker 0 returned nothing".into())),
+    }
+}
+
+/// The forward pass and loss of one step on `idx` (frames `first..` of the step's batch). Everything
+/// that can fail on one worker alone (a file, the loss) fails here, before the workers exchange
+/// anything.
+fn forward_loss<B, M>(
+    model: &M,
+    ds: &Dataset,
+    idx: &[usize],
+    first: usize,
+    aug_seed: Option<u64>,
+    device: &B::Device,
+    step: usize,
+) -> Result<StepLoss<B>, TrainError>
+where
+    B: AutodiffBackend,
+    M: AutodiffModule<B> + OccNetwork<B>,
+{
+    let samples = load_samples(ds, idx, first, aug_seed)?;
+    let batch = collate::<B>(&samples, ds.grid(), device)?;
+    if batch.target.is_none() {
+        return Err(TrainError::Data(format!(
+            "frame {}/{} has no voxels/*.label: cannot train on it",
+            samples[0].frame.sequence, samples[0].frame.frame
+        )));
+    }
+    let out = model.forward_batch(&batch)?;
+    let mut terms = Vec::new();
+    for (name, l) in &out.losses {
+        let v: f64 = l.clone().into_scalar().elem();
+        terms.push((name.to_string(), v));
+    }
+    let loss = out
+        .total_loss()
+        .ok_or_else(|| TrainError::Data("the model returned no loss terms".into()))?;
+    let loss_v: f64 = loss.clone().into_scalar().elem();
+    if !loss_v.is_finite() {
+        let detail = terms
+            .iter()
+            .map(|(n, v)| format!("{n}={v}"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        return Err(TrainError::NonFiniteLoss {
+            step: step + 1,
+            detail,
+        });
+    }
+    Ok((loss, loss_v, terms))
+}
+
+/// The training loop of one worker (`peer` = `None`: the only one). Worker 0 (or the only worker)
+/// logs, reports and writes the checkpoints.
+fn train_worker<B, M>(
+    mut model: M,
+    setup: &Setup<B>,
+    peer: Option<&Peer<B::InnerBackend>>,
+    on_step: &mut dyn FnMut(usize, usize, &StepLog),
+) -> Result<(M, TrainSummary), TrainError>
+where
+    B: AutodiffBackend,
+    M: AutodiffModule<B> + OccNetwork<B>,
+{
+    let Setup {
+        cfg,
+        ds,
+        device,
+        ck,
+        log_path,
+        resume_state,
+    } = setup;
+    let leader = peer.is_none_or(|p| p.rank() == 0);
     let recorder = BinFileRecorder::<FullPrecisionSettings>::new();
     let mut opt_decay = AdamWConfig::new()
         .with_weight_decay(cfg.weight_decay as f32)
@@ -285,22 +532,13 @@ where
         model = load_weights(model, &ck.model(), device)?;
         for (which, opt) in [("decay", &mut opt_decay), ("plain", &mut opt_plain)] {
             let p = ck.optim(which);
-            let rec = recorder.load(p.clone(), device).map_err(|e| {
+            let rec = recorder.load(p.clone(), *device).map_err(|e| {
                 TrainError::Checkpoint(format!(
                     "{} (the optimizer state)",
                     record_error_text(&p.with_extension("bin"), &e.to_string())
                 ))
             })?;
             *opt = std::mem::replace(opt, AdamWConfig::new().init::<B, M>()).load_record(rec);
-        }
-        if state.step > cfg.steps {
-            return Err(TrainError::Checkpoint(format!(
-                "{}: the checkpoint is at step {} but the run has {} steps; give --steps {} or more",
-                ck.state().display(),
-                state.step,
-                cfg.steps,
-                state.step
-            )));
         }
         start = state.step;
         prior_seconds = state.train_seconds;
@@ -313,58 +551,81 @@ where
         min_lr_ratio: cfg.min_lr_ratio,
         warmup_start_ratio: 0.1,
     };
-    let log_path = run.join("train_log.csv");
-    // The log holds each step once: a fresh run starts it anew; a resumed run keeps the header and
-    // the rows up to the checkpoint's step (rows logged after it, by the interrupted process, are
-    // redone and logged again).
-    truncate_log(&log_path, start)?;
-    let mut log = std::fs::OpenOptions::new()
-        .append(true)
-        .open(&log_path)
-        .map_err(io_err(&log_path))?;
+    let mut log = if leader {
+        Some(
+            std::fs::OpenOptions::new()
+                .append(true)
+                .open(log_path)
+                .map_err(io_err(log_path))?,
+        )
+    } else {
+        None
+    };
+    if let Some(p) = peer {
+        if !p.same_everywhere(fingerprint::<B, M>(&model), "comparing the replicas")? {
+            return Err(TrainError::Parallel(
+                "the workers' networks differ before the first step".into(),
+            ));
+        }
+    }
     let t_run = Instant::now();
     let mut losses = Vec::new();
     for step in start..cfg.steps {
         let t0 = Instant::now();
         let idx = batch_indices(ds.len(), cfg.batch_size, cfg.seed, step);
+        let shard = peer.map_or(0..idx.len(), |p| p.shard(idx.len()));
         let aug_seed = cfg
             .augment
             .then(|| cfg.seed ^ (step as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
-        let samples = load_samples(ds, &idx, aug_seed)?;
-        let batch = collate::<B>(&samples, ds.grid(), device)?;
-        if batch.target.is_none() {
-            return Err(TrainError::Data(format!(
-                "frame {}/{} has no voxels/*.label: cannot train on it",
-                samples[0].frame.sequence, samples[0].frame.frame
-            )));
-        }
-        let out = model.forward_batch(&batch)?;
-        let mut terms = Vec::new();
-        for (name, l) in &out.losses {
-            let v: f64 = l.clone().into_scalar().elem();
-            terms.push((name.to_string(), v));
-        }
-        let loss = out
-            .total_loss()
-            .ok_or_else(|| TrainError::Data("the model returned no loss terms".into()))?;
-        let loss_v: f64 = loss.clone().into_scalar().elem();
-        if !loss_v.is_finite() {
-            let detail = terms
-                .iter()
-                .map(|(n, v)| format!("{n}={v}"))
-                .collect::<Vec<_>>()
-                .join(", ");
-            return Err(TrainError::NonFiniteLoss {
-                step: step + 1,
-                detail,
-            });
-        }
+        let local = forward_loss::<B, M>(
+            &model,
+            ds,
+            &idx[shard.clone()],
+            shard.start,
+            aug_seed,
+            device,
+            step,
+        );
+        let (loss, mut loss_v, mut terms) = match peer {
+            None => local?,
+            Some(p) => {
+                let all_ok = p.all_ok(local.is_ok(), "agreeing on the step")?;
+                match local {
+                    Err(e) => return Err(e),
+                    Ok(_) if !all_ok => {
+                        return Err(TrainError::Parallel(format!(
+                            "step {}: another worker failed (its error is reported)",
+                            step + 1
+                        )))
+                    }
+                    Ok(l) => l,
+                }
+            }
+        };
         let mut grads = GradientsParams::from_grads(loss.backward(), &model);
+        if let Some(p) = peer {
+            grads = all_reduce_grads::<B, M>(p, &model, grads)?;
+            let mut values = vec![loss_v];
+            values.extend(terms.iter().map(|t| t.1));
+            let mean = p.mean(&values, "averaging the losses")?;
+            loss_v = mean[0];
+            for (t, v) in terms.iter_mut().zip(&mean[1..]) {
+                t.1 = *v;
+            }
+        }
         let grad_norm = clip_global_norm::<B, M>(&model, &mut grads, cfg.clip_norm);
         let plain = split_no_decay::<B, M>(&model, &mut grads);
         let lr = schedule.lr_at(step);
         model = opt_decay.step(lr, model, grads);
         model = opt_plain.step(lr, model, plain);
+        if let Some(p) = peer {
+            if !p.same_everywhere(fingerprint::<B, M>(&model), "comparing the replicas")? {
+                return Err(TrainError::Parallel(format!(
+                    "the workers' networks differ after step {}: the data-parallel run is broken",
+                    step + 1
+                )));
+            }
+        }
         let entry = StepLog {
             step: step + 1,
             lr,
@@ -372,21 +633,27 @@ where
             terms,
             grad_norm,
             seconds: t0.elapsed().as_secs_f64(),
+            frames: cfg.batch_size,
         };
         losses.push(loss_v);
-        if (step + 1) % cfg.log_every.max(1) == 0 || step + 1 == cfg.steps {
-            let t = entry
-                .terms
-                .iter()
-                .map(|(n, v)| format!("{n}={v:.5}"))
-                .collect::<Vec<_>>()
-                .join(";");
-            writeln!(
-                log,
-                "{},{:.3e},{:.6},{:.4},{:.3},{}",
-                entry.step, lr, loss_v, grad_norm, entry.seconds, t
-            )
-            .map_err(io_err(&log_path))?;
+        if !leader {
+            continue;
+        }
+        if let Some(log) = &mut log {
+            if (step + 1) % cfg.log_every.max(1) == 0 || step + 1 == cfg.steps {
+                let t = entry
+                    .terms
+                    .iter()
+                    .map(|(n, v)| format!("{n}={v:.5}"))
+                    .collect::<Vec<_>>()
+                    .join(";");
+                writeln!(
+                    log,
+                    "{},{:.3e},{:.6},{:.4},{:.3},{}",
+                    entry.step, lr, loss_v, grad_norm, entry.seconds, t
+                )
+                .map_err(io_err(log_path))?;
+            }
         }
         on_step(step + 1, cfg.steps, &entry);
         if (step + 1) % cfg.checkpoint_every.max(1) == 0 || step + 1 == cfg.steps {
@@ -394,7 +661,7 @@ where
                 &model,
                 &opt_decay,
                 &opt_plain,
-                &ck,
+                ck,
                 &recorder,
                 TrainState {
                     step: step + 1,
