@@ -140,6 +140,31 @@ impl<B: Backend> Peer<B> {
     }
 }
 
+/// The device of worker `rank` of `workers`: where the backend has several devices of `base`'s
+/// kind (GPUs), device `base + rank`, one per worker; where it has one (the CPU), `base` itself,
+/// shared by the workers.
+pub fn worker_device<B: Backend>(
+    base: &B::Device,
+    rank: usize,
+    workers: usize,
+) -> Result<B::Device, TrainError> {
+    let id = base.to_id();
+    let count = B::device_count(id.type_id);
+    if count <= 1 {
+        return Ok(base.clone());
+    }
+    let first = id.index_id as usize;
+    if first + workers > count {
+        return Err(TrainError::Config(format!(
+            "train.devices = {workers} from device {first}: the machine has {count} devices of this kind"
+        )));
+    }
+    Ok(B::Device::from_id(burn::tensor::backend::DeviceId {
+        type_id: id.type_id,
+        index_id: (first + rank) as u16,
+    }))
+}
+
 /// Releases every worker waiting in a collective operation of backend `B` (they get an error) and
 /// forgets the registered workers: how a failed worker stops the others.
 pub fn abort_collective<B: Backend>() {

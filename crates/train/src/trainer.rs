@@ -9,7 +9,7 @@ use crate::config::RunConfig;
 use crate::dataset::{collate, Dataset, Sample};
 use crate::error::TrainError;
 use crate::grads::{clip_global_norm, split_no_decay};
-use crate::parallel::{abort_collective, all_reduce_grads, fingerprint, Peer};
+use crate::parallel::{abort_collective, all_reduce_grads, fingerprint, worker_device, Peer};
 use crate::schedule::WarmupCosine;
 use burn::module::AutodiffModule;
 use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
@@ -334,7 +334,7 @@ where
         resume_state,
     };
     if cfg.devices <= 1 {
-        return train_worker::<B, M>(model, &setup, None, on_step);
+        return train_worker::<B, M>(model, &setup, device, None, on_step);
     }
     train_workers::<B, M>(model, &setup, on_step)
 }
@@ -363,6 +363,7 @@ where
             .map(|rank| {
                 let model = model.clone();
                 let tx = tx.clone();
+                let device = worker_device::<B>(setup.device, rank, n);
                 std::thread::Builder::new()
                     .name(format!("train-worker-{rank}"))
                     .spawn_scoped(s, move || {
@@ -372,14 +373,20 @@ where
                                 .thread_name(move |i| format!("train-{rank}-{i}"))
                                 .build()
                                 .map_err(|e| TrainError::Parallel(format!("worker {rank}: {e}")))?;
+                            let device = device?;
+                            let model = model.fork(&device);
                             pool.install(|| {
-                                let peer =
-                                    Peer::<B::InnerBackend>::register(rank, n, setup.device)?;
+                                let peer = Peer::<B::InnerBackend>::register(rank, n, &device)?;
                                 let mut report = |_: usize, _: usize, log: &StepLog| {
                                     let _ = tx.send(log.clone());
                                 };
-                                let r =
-                                    train_worker::<B, M>(model, setup, Some(&peer), &mut report);
+                                let r = train_worker::<B, M>(
+                                    model,
+                                    setup,
+                                    &device,
+                                    Some(&peer),
+                                    &mut report,
+                                );
                                 if r.is_ok() {
                                     peer.finish();
                                 }
@@ -500,6 +507,7 @@ where
 fn train_worker<B, M>(
     mut model: M,
     setup: &Setup<B>,
+    device: &B::Device,
     peer: Option<&Peer<B::InnerBackend>>,
     on_step: &mut dyn FnMut(usize, usize, &StepLog),
 ) -> Result<(M, TrainSummary), TrainError>
@@ -510,10 +518,10 @@ where
     let Setup {
         cfg,
         ds,
-        device,
         ck,
         log_path,
         resume_state,
+        ..
     } = setup;
     let leader = peer.is_none_or(|p| p.rank() == 0);
     let recorder = BinFileRecorder::<FullPrecisionSettings>::new();
@@ -532,7 +540,7 @@ where
         model = load_weights(model, &ck.model(), device)?;
         for (which, opt) in [("decay", &mut opt_decay), ("plain", &mut opt_plain)] {
             let p = ck.optim(which);
-            let rec = recorder.load(p.clone(), *device).map_err(|e| {
+            let rec = recorder.load(p.clone(), device).map_err(|e| {
                 TrainError::Checkpoint(format!(
                     "{} (the optimizer state)",
                     record_error_text(&p.with_extension("bin"), &e.to_string())
