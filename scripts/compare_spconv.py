@@ -21,11 +21,13 @@ outputs are O(1).
 
 Timing (same run, same inputs): each measured call is a whole convolution from coordinates and features
 (kernel map included on both sides: spconv gets a fresh SparseConvTensor each call, so its indice pairs are
-rebuilt), one warm-up call, then the median of --repeat calls. spconv is timed with 1 thread and with the default
+rebuilt), a 0.5 s pause (so that thread pools spinning from the previous work are idle), one warm-up call, then
+the median of at least --repeat calls and at least 0.5 s of calls, Python's garbage collector off. spconv is timed with 1 thread and with the default
 thread count; `spconv_best_ok_ms` is the fastest of the settings whose output agreed with the reference, and the
 ratios are sparseocc / spconv (below 1: sparseocc is faster).
 """
 import argparse
+import gc
 import itertools
 import json
 import os
@@ -223,13 +225,32 @@ def compare(coords_a, feats_a, coords_b, feats_b, oshape):
     return res
 
 
+COOL_DOWN_S = 0.5
+MIN_TIMED_S = 0.5
+
+
 def median_ms(fn, repeat):
+    """Median ms of `fn` over at least `repeat` calls and at least MIN_TIMED_S seconds of calls, after
+    one warm-up call; the same for every contestant. Python's garbage collector is off while timing
+    (as in `timeit`): its collections over the many objects torch creates landed in random calls."""
+    # Idle first: thread pools of the previous work (OpenBLAS's after the float64 reference, PyTorch's
+    # OpenMP threads after spconv) spin for up to ~0.1 s after their last job and would take a core
+    # from whatever is timed next (measured: sparseocc's subm_k3_b2 4.1-7.6 ms right after them,
+    # 3.3-3.7 ms without them).
+    time.sleep(COOL_DOWN_S)
     fn()  # warm-up
     ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        ts.append((time.perf_counter() - t0) * 1e3)
+    gc_was_on = gc.isenabled()
+    gc.disable()
+    try:
+        start = time.perf_counter()
+        while len(ts) < repeat or time.perf_counter() - start < MIN_TIMED_S:
+            t0 = time.perf_counter()
+            fn()
+            ts.append((time.perf_counter() - t0) * 1e3)
+    finally:
+        if gc_was_on:
+            gc.enable()
     return statistics.median(ts)
 
 

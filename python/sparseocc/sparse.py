@@ -21,7 +21,9 @@ def conv3d(coords, feats, weight, spatial_shape, kernel, stride=1, padding=0, di
 
     Returns ``(out_coords, out_feats)``: int32 ``[M, 4]`` sorted by ``(b, x, y, z)`` and float32
     ``[M, Cout]``. Inputs may have any memory layout (views, Fortran order, either byte order);
-    they are read in logical order.
+    they are read in logical order. C-contiguous ``float32`` features and weights are read in
+    place (no copy) while the GIL is released, as numpy's own functions do: do not write them
+    from another thread during the call.
     """
     c = _np.asarray(coords)
     if c.dtype.kind not in "iu":

@@ -72,6 +72,22 @@ fn protocol(dataset: &str) -> PyResult<Protocol> {
     dataset.parse::<Protocol>().map_err(value_err)
 }
 
+/// Values of an array in C order (whatever its memory layout), borrowed where the array is
+/// C-contiguous (no copy), else copied in logical order.
+///
+/// The borrow outlives a released GIL in [`conv3d`]: like numpy's own functions that release the
+/// GIL, the call reads the array while it runs, so another Python thread must not write it then.
+fn c_order_cow<'a, T: numpy::Element + Copy>(
+    a: &'a PyReadonlyArrayDyn<'_, T>,
+) -> std::borrow::Cow<'a, [T]> {
+    if a.is_c_contiguous() {
+        if let Ok(s) = a.as_slice() {
+            return std::borrow::Cow::Borrowed(s);
+        }
+    }
+    std::borrow::Cow::Owned(a.as_array().iter().copied().collect())
+}
+
 /// Values of an array in C order (whatever its memory layout).
 fn c_order<T: numpy::Element + Copy>(a: &PyReadonlyArrayDyn<'_, T>) -> Vec<T> {
     // `as_slice` also succeeds on Fortran-order arrays (it only asks for contiguity), whose memory
@@ -467,7 +483,7 @@ fn conv3d<'py>(
     }
     let (c_in, c_out) = (fs[1], ws[0]);
     let mut sites = Vec::with_capacity(cs[0]);
-    let c = c_order(&coords);
+    let c = c_order_cow(&coords);
     for (row, r) in c.chunks_exact(4).enumerate() {
         let mut s = [0i32; 4];
         for (d, &v) in s.iter_mut().zip(r) {
@@ -476,7 +492,7 @@ fn conv3d<'py>(
         }
         sites.push(s);
     }
-    let (f, w) = (c_order(&feats), c_order(&weight));
+    let (f, w) = (c_order_cow(&feats), c_order_cow(&weight));
     let spec = ArrayConvSpec {
         spatial_shape: spatial_shape.get(),
         kernel,

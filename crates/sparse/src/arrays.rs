@@ -4,13 +4,12 @@
 //! The input is validated as [`CoordSet::new`] validates it (every site inside the batch and spatial
 //! shape, no duplicates) and put in (b, x, y, z) order; the kernel map is built on a fresh coordinate
 //! set and the features are computed by the host kernels of [`crate::host`] straight on the slices
-//! (no tensors, no copies of the output).
+//! (no tensors; the features are read where they lie, in the caller's row order, and the output is not copied).
 
 use crate::coords::{pack, validate_sorted_order};
 use crate::host::{conv_forward, WeightView};
 use crate::kernel_map::{conv_map, ConvGeometry, MapKind};
 use crate::{Coord, CoordSet, Result, SparseError};
-use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -139,19 +138,14 @@ pub fn conv3d_arrays(
             output_padding: [0; 3],
         },
     };
-    // Validation sorts the rows: every map built on sorted input sites yields sorted output sites
+    // Validation sorts the sites: every map built on sorted input sites yields sorted output sites
     // (submanifold keeps them; regular and transposed number their outputs in key order), so the
-    // output needs no sort and no gather.
-    let (coords, x) = match validate_sorted_order(&coords, spec.spatial_shape, batch)? {
-        None => (coords, Cow::Borrowed(feats)),
-        Some(order) => {
-            let mut x = Vec::with_capacity(n * c_in);
-            for &row in &order {
-                x.extend_from_slice(&feats[row as usize * c_in..][..c_in]);
-            }
-            let sorted = order.iter().map(|&row| coords[row as usize]).collect();
-            (sorted, Cow::Owned(x))
-        }
+    // output needs no sort. The features stay where they are: the map's input rows are renamed
+    // back to the caller's rows instead.
+    let order = validate_sorted_order(&coords, spec.spatial_shape, batch)?;
+    let coords = match &order {
+        None => coords,
+        Some(order) => order.iter().map(|&row| coords[row as usize]).collect(),
     };
     let set = Arc::new(CoordSet::from_valid_unique(
         coords,
@@ -161,6 +155,10 @@ pub fn conv3d_arrays(
     ));
     let t0 = Instant::now();
     let (out_set, map) = conv_map(&set, kind, geom)?;
+    let map = match &order {
+        None => map,
+        Some(order) => Arc::new(map.with_input_rows(order)),
+    };
     let ms_kernel_map = t0.elapsed().as_secs_f64() * 1e3;
     debug_assert!(out_set.coords().windows(2).all(|w| pack(w[0]) < pack(w[1])));
 
@@ -171,7 +169,7 @@ pub fn conv3d_arrays(
         d2: c_in,
         transposed: false,
     };
-    let feats = conv_forward::<f32>(&x, weight, wv, &map);
+    let feats = conv_forward::<f32>(feats, weight, wv, &map);
     let ms_compute = t0.elapsed().as_secs_f64() * 1e3;
     Ok(ArrayConvOutput {
         coords: out_set.coords().to_vec(),

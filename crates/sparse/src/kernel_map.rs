@@ -301,6 +301,26 @@ impl KernelMap {
         })
     }
 
+    /// The same pairs with every input row `i` renamed `rows[i]`: the map of the same convolution
+    /// over the input rows in another order (e.g. the caller's order where the map was built on
+    /// sorted sites), so that the features need not be permuted. `rows` must be a permutation of
+    /// `0..n_in`.
+    pub(crate) fn with_input_rows(&self, rows: &[u32]) -> KernelMap {
+        debug_assert_eq!(rows.len(), self.n_in);
+        KernelMap {
+            kernel_volume: self.kernel_volume,
+            n_in: self.n_in,
+            n_out: self.n_out,
+            in_idx: self.in_idx.iter().map(|&i| rows[i as usize]).collect(),
+            out_idx: self.out_idx.clone(),
+            offset_start: self.offset_start.clone(),
+            build_ms: self.build_ms,
+            transposed: OnceLock::new(),
+            gather_table: OnceLock::new(),
+            by_output: OnceLock::new(),
+        }
+    }
+
     /// The map with inputs and outputs swapped (same offset numbering), sorted by its new output rows.
     /// Used by gradients and by inverse convolution. Computed once and cached.
     pub fn transposed(&self) -> Arc<KernelMap> {
