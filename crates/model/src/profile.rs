@@ -16,6 +16,7 @@
 //! previous mark to its stage, as it does the time. Disabled, [`add_macs`] reads one thread-local
 //! flag and returns (no allocation, no synchronisation, no shape arithmetic in [`linear`]).
 
+use crate::kernels::ModelBackend;
 use burn::nn::Linear;
 use burn::prelude::*;
 use std::cell::{Cell, RefCell};
@@ -165,12 +166,38 @@ pub fn add_conv2d(weight_dims: [usize; 4], out_elements: usize) {
 /// `lin.forward(x)`, counting its `rows * d_in * d_out` multiply-adds (the bias is not a MAC).
 #[inline]
 pub fn linear<B: Backend, const D: usize>(lin: &Linear<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+    count_linear(lin, &x);
+    lin.forward(x)
+}
+
+/// [`linear`] through the backend's [`ModelBackend::row_linear`] (on the CPU a host GEMM with the
+/// bias fused into its output), counted the same.
+#[inline]
+pub fn row_linear<B: ModelBackend, const D: usize>(
+    lin: &Linear<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
+    count_linear(lin, &x);
+    B::row_linear(lin, x, false)
+}
+
+/// `relu(lin.forward(x))` through [`ModelBackend::row_linear`] (on the CPU the ReLU is fused too),
+/// counted as [`linear`].
+#[inline]
+pub fn row_linear_relu<B: ModelBackend, const D: usize>(
+    lin: &Linear<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
+    count_linear(lin, &x);
+    B::row_linear(lin, x, true)
+}
+
+fn count_linear<B: Backend, const D: usize>(lin: &Linear<B>, x: &Tensor<B, D>) {
     if counting() {
         let [d_in, d_out] = lin.weight.dims();
         let rows = x.shape().num_elements() / d_in.max(1);
         record("linear", (rows * d_in * d_out) as u64);
     }
-    lin.forward(x)
 }
 
 /// Restarts the clock (call at the start of a forward pass).

@@ -9,19 +9,21 @@
 //! |---|---|---|---|
 //! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
 //! | [`ModelBackend::dca_sample`] | [`dca::sample_tensor_ops`] (`grid_sample`) | host loop | host loop as one autodiff op |
+//! | [`ModelBackend::row_linear`], [`ModelBackend::row_layer_norm`], [`ModelBackend::row_softmax`] | burn's `Linear` (+ `relu`), `LayerNorm`, `softmax` | row-wise host loops (`rows_host`: bias and ReLU fused into the GEMM output, one pass per row) | burn's (portable) |
 //!
 //! Where a host kernel does not apply (a grouped convolution, tensors whose float type is not the
 //! backend's), the override falls back to the portable path, as the type-checking code before it did.
 
 use crate::kernels::conv2d_host::{bn_relu, conv_autodiff, conv_bn_host, conv_bn_portable};
 use crate::kernels::dca::{self, DcaSample};
-use crate::kernels::dca_host;
 use crate::kernels::host_data::NdElem;
+use crate::kernels::{dca_host, rows_host};
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::ndarray::{NdArrayTensor, SharedArray};
 use burn::backend::{Autodiff, NdArray};
 use burn::nn::conv::Conv2d;
-use burn::nn::BatchNorm;
+use burn::nn::{BatchNorm, LayerNorm, Linear};
+use burn::tensor::activation::softmax;
 use burn::tensor::Tensor;
 use occ_sparse::SparseConvBackend;
 
@@ -40,6 +42,35 @@ pub trait ModelBackend: SparseConvBackend {
         apply_relu: bool,
     ) -> Tensor<Self, 4> {
         conv_bn_portable(conv, bn, x, apply_relu)
+    }
+
+    /// `relu?(lin.forward(x))` over the last axis.
+    ///
+    /// # Shapes
+    /// - x: `[..., d_in]` -> `[..., d_out]`
+    fn row_linear<const D: usize>(
+        lin: &Linear<Self>,
+        x: Tensor<Self, D>,
+        relu: bool,
+    ) -> Tensor<Self, D> {
+        linear_portable(lin, x, relu)
+    }
+
+    /// `ln.forward(x)` for a LayerNorm made with epsilon [`LAYER_NORM_EPSILON`] (burn's module
+    /// does not expose its epsilon, so the models build theirs with this constant).
+    ///
+    /// # Shapes
+    /// - x: `[..., d]` -> `[..., d]`
+    fn row_layer_norm<const D: usize>(ln: &LayerNorm<Self>, x: Tensor<Self, D>) -> Tensor<Self, D> {
+        ln.forward(x)
+    }
+
+    /// Softmax over the last axis.
+    ///
+    /// # Shapes
+    /// - x: `[..., d]` -> `[..., d]`
+    fn row_softmax<const D: usize>(x: Tensor<Self, D>) -> Tensor<Self, D> {
+        softmax(x, D - 1)
     }
 
     /// The DCA sampling step (see [`dca`]).
@@ -69,6 +100,23 @@ pub trait ModelBackend: SparseConvBackend {
     }
 }
 
+/// The epsilon of the models' LayerNorms (burn's default), known to [`ModelBackend::row_layer_norm`].
+pub const LAYER_NORM_EPSILON: f64 = 1e-5;
+
+/// burn's `Linear`, then ReLU if asked.
+fn linear_portable<B: burn::tensor::backend::Backend, const D: usize>(
+    lin: &Linear<B>,
+    x: Tensor<B, D>,
+    relu: bool,
+) -> Tensor<B, D> {
+    let y = lin.forward(x);
+    if relu {
+        burn::tensor::activation::relu(y)
+    } else {
+        y
+    }
+}
+
 /// The CPU backend: the host kernels, in inference and (through `Autodiff<NdArray<T>>`) in training.
 impl<T: NdElem> ModelBackend for NdArray<T>
 where
@@ -88,6 +136,22 @@ where
 
     fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
         dca_host::sample_host(s).unwrap_or_else(dca::sample_tensor_ops)
+    }
+
+    fn row_linear<const D: usize>(
+        lin: &Linear<Self>,
+        x: Tensor<Self, D>,
+        relu: bool,
+    ) -> Tensor<Self, D> {
+        rows_host::linear_host(lin, &x, relu).unwrap_or_else(|| linear_portable(lin, x, relu))
+    }
+
+    fn row_layer_norm<const D: usize>(ln: &LayerNorm<Self>, x: Tensor<Self, D>) -> Tensor<Self, D> {
+        rows_host::layer_norm_host(ln, &x, LAYER_NORM_EPSILON).unwrap_or_else(|| ln.forward(x))
+    }
+
+    fn row_softmax<const D: usize>(x: Tensor<Self, D>) -> Tensor<Self, D> {
+        rows_host::softmax_host(&x).unwrap_or_else(|| softmax(x, D - 1))
     }
 
     fn conv2d_autodiff<C: CheckpointStrategy>(

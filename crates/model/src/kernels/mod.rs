@@ -9,6 +9,8 @@
 //!   and the convolution as one autodiff op for CPU training.
 //! - [`dca`]: the DCA sampling op's inputs ([`DcaSample`], [`ViewHits`]) and its portable form.
 //! - `dca_host`: the DCA sampling step and its backward pass as host loops.
+//! - `rows_host`: linear layers (bias and ReLU fused), LayerNorm and softmax as row-wise host loops
+//!   for inference.
 //! - [`host_data`]: zero-copy access to the NdArray backend's tensors for the host kernels.
 //!
 //! [`host_kernel_calls`] counts, per thread, how often each host kernel ran (tests use it to check
@@ -19,8 +21,9 @@ pub mod conv2d_host;
 pub mod dca;
 pub(crate) mod dca_host;
 pub mod host_data;
+pub(crate) mod rows_host;
 
-pub use backend::ModelBackend;
+pub use backend::{ModelBackend, LAYER_NORM_EPSILON};
 pub use dca::{DcaSample, ViewHits};
 
 use std::cell::Cell;

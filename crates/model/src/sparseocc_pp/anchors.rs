@@ -65,10 +65,10 @@ pub(crate) fn combined_gate<B: Backend>(
     })
 }
 use crate::error::ModelError;
+use crate::kernels::ModelBackend;
 use burn::module::Param;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::relu;
 use burn::tensor::TensorData;
 use occ_sparse::backend::index_tensor;
 use occ_sparse::{Coord, SparseTensor};
@@ -117,7 +117,9 @@ impl<B: Backend> PositionEncoding<B> {
             fc2: LinearConfig::new(d, d).init(device),
         }
     }
+}
 
+impl<B: ModelBackend> PositionEncoding<B> {
     /// Codes `[N, D]` of voxels `(b, x, y, z)` on a grid of `dims`.
     pub fn encode(&self, coords: &[Coord], dims: [usize; 3], device: &B::Device) -> Tensor<B, 2> {
         let mut v = Vec::with_capacity(coords.len() * 3);
@@ -127,7 +129,7 @@ impl<B: Backend> PositionEncoding<B> {
             }
         }
         let x = Tensor::<B, 2>::from_data(TensorData::new(v, [coords.len(), 3]), device);
-        crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
+        crate::profile::row_linear(&self.fc2, crate::profile::row_linear_relu(&self.fc1, x))
     }
 }
 
@@ -148,9 +150,12 @@ impl<B: Backend> ScoreHead<B> {
             fc2: LinearConfig::new(d, num_classes).init(device),
         }
     }
+}
+
+impl<B: ModelBackend> ScoreHead<B> {
     /// `[N, D]` → logits `[N, num_classes]`.
     pub fn forward(&self, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
+        crate::profile::row_linear(&self.fc2, crate::profile::row_linear_relu(&self.fc1, x))
     }
 }
 

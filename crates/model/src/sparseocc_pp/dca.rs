@@ -39,7 +39,7 @@ use crate::kernels::ModelBackend;
 use burn::module::Param;
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::{relu, softmax};
+
 use burn::tensor::TensorData;
 use occ_geometry::{project_with, VoxelGrid};
 use occ_sparse::Coord;
@@ -132,10 +132,14 @@ impl DcaConfig {
             sampling_offsets,
             attention_weights,
             output_proj: LinearConfig::new(d, d).init(device),
-            norm1: LayerNormConfig::new(d).init(device),
+            norm1: LayerNormConfig::new(d)
+                .with_epsilon(crate::kernels::LAYER_NORM_EPSILON)
+                .init(device),
             ffn1: LinearConfig::new(d, hidden).init(device),
             ffn2: LinearConfig::new(hidden, d).init(device),
-            norm2: LayerNormConfig::new(d).init(device),
+            norm2: LayerNormConfig::new(d)
+                .with_epsilon(crate::kernels::LAYER_NORM_EPSILON)
+                .init(device),
             embed_dim: d,
             feat_channels: self.feat_channels,
             num_heads: m,
@@ -300,7 +304,7 @@ fn project_points(
     Ok(hits)
 }
 
-impl<B: Backend> DeformableCrossAttention<B> {
+impl<B: ModelBackend> DeformableCrossAttention<B> {
     /// Query width `D`.
     pub fn embed_dim(&self) -> usize {
         self.embed_dim
@@ -320,10 +324,11 @@ impl<B: Backend> DeformableCrossAttention<B> {
     pub fn sampling(&self, query: Tensor<B, 2>) -> (Tensor<B, 5>, Tensor<B, 4>) {
         let n = query.dims()[0];
         let (m, l, p) = (self.num_heads, self.num_levels, self.num_points);
-        let offsets =
-            crate::profile::linear(&self.sampling_offsets, query.clone()).reshape([n, m, l, p, 2]);
-        let logits = crate::profile::linear(&self.attention_weights, query).reshape([n, m, l * p]);
-        let weights = softmax(logits, 2).reshape([n, m, l, p]);
+        let offsets = crate::profile::row_linear(&self.sampling_offsets, query.clone())
+            .reshape([n, m, l, p, 2]);
+        let logits =
+            crate::profile::row_linear(&self.attention_weights, query).reshape([n, m, l * p]);
+        let weights = B::row_softmax(logits).reshape([n, m, l, p]);
         (offsets, weights)
     }
 
@@ -333,7 +338,7 @@ impl<B: Backend> DeformableCrossAttention<B> {
         let m = self.num_heads;
         let dh = self.embed_dim / m;
         let rows = feats.permute([0, 2, 3, 1]).reshape([n * h * w, c]);
-        crate::profile::linear(&self.value_proj, rows)
+        crate::profile::row_linear(&self.value_proj, rows)
             .reshape([n, h, w, m, dh])
             .permute([0, 3, 4, 1, 2])
             .reshape([n * m, dh, h, w])
@@ -347,7 +352,12 @@ impl<B: Backend> DeformableCrossAttention<B> {
             .map(|f| {
                 let [bv, c, h, w] = f.dims();
                 let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-                crate::profile::linear(&self.value_proj, rows).reshape([bv, h, w, self.embed_dim])
+                crate::profile::row_linear(&self.value_proj, rows).reshape([
+                    bv,
+                    h,
+                    w,
+                    self.embed_dim,
+                ])
             })
             .collect()
     }
@@ -521,14 +531,15 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
             gate,
         })?;
         crate::profile::trace_mark("dca sampling", &attn);
-        let x = self
-            .norm1
-            .forward(feats + crate::profile::linear(&self.output_proj, attn));
-        let y = crate::profile::linear(
-            &self.ffn2,
-            relu(crate::profile::linear(&self.ffn1, x.clone())),
+        let x = B::row_layer_norm(
+            &self.norm1,
+            feats + crate::profile::row_linear(&self.output_proj, attn),
         );
-        Ok(self.norm2.forward(x + y))
+        let y = crate::profile::row_linear(
+            &self.ffn2,
+            crate::profile::row_linear_relu(&self.ffn1, x.clone()),
+        );
+        Ok(B::row_layer_norm(&self.norm2, x + y))
     }
 }
 

@@ -135,7 +135,7 @@ fn dca_excludes_views_that_do_not_see_the_voxel() {
 /// same attention, in f64 and in f32, including samples that leave the feature maps.
 #[test]
 fn dca_host_loop_equals_tensor_ops() {
-    fn check<Bk: Backend>(tol: f64) {
+    fn check<Bk: occ_model::kernels::ModelBackend>(tol: f64) {
         let device = Default::default();
         let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
         let mut dca = DcaConfig::new(d, FEAT_C)
