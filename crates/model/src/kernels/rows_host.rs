@@ -86,6 +86,22 @@ pub(crate) fn linear_rows<T: Elem>(
     y
 }
 
+/// `y [rows, d]` with `f(x_row, y_row)` run on every row of `x [rows, d]`, in parallel blocks.
+fn map_rows<T: Elem>(x: &[T], d: usize, f: impl Fn(&[T], &mut [T]) + Sync) -> Vec<T> {
+    let mut y = vec![T::zero(); x.len()];
+    if d == 0 {
+        return y;
+    }
+    y.par_chunks_mut(NORM_BLOCK_ROWS * d)
+        .zip(x.par_chunks(NORM_BLOCK_ROWS * d))
+        .for_each(|(yb, xb)| {
+            for (yr, xr) in yb.chunks_exact_mut(d).zip(xb.chunks_exact(d)) {
+                f(xr, yr);
+            }
+        });
+    y
+}
+
 /// Layer normalisation of every row of `x [rows, d]`: `(x - mean) / sqrt(var + eps) · gamma + beta`
 /// with the biased variance, as burn's `LayerNorm`.
 pub(crate) fn layer_norm_rows<T: Elem>(
@@ -95,65 +111,47 @@ pub(crate) fn layer_norm_rows<T: Elem>(
     beta: Option<&[T]>,
     eps: f64,
 ) -> Vec<T> {
-    let mut y = vec![T::zero(); x.len()];
-    if d == 0 {
-        return y;
-    }
-    y.par_chunks_mut(NORM_BLOCK_ROWS * d)
-        .zip(x.par_chunks(NORM_BLOCK_ROWS * d))
-        .for_each(|(yb, xb)| {
-            for (yr, xr) in yb.chunks_exact_mut(d).zip(xb.chunks_exact(d)) {
-                let mean = xr.iter().map(|v| v.to_f64()).sum::<f64>() / d as f64;
-                let var = xr
-                    .iter()
-                    .map(|v| {
-                        let c = v.to_f64() - mean;
-                        c * c
-                    })
-                    .sum::<f64>()
-                    / d as f64;
-                let inv = 1.0 / (var + eps).sqrt();
-                // (v - mean) · inv as v · inv + (-mean · inv)
-                let (inv_t, shift_t) = (T::from_f64(inv), T::from_f64(-mean * inv));
-                for (j, (o, &v)) in yr.iter_mut().zip(xr).enumerate() {
-                    let n = (v * inv_t + shift_t) * gamma[j];
-                    *o = match beta {
-                        Some(b) => n + b[j],
-                        None => n,
-                    };
-                }
-            }
-        });
-    y
+    map_rows(x, d, |xr, yr| {
+        let mean = xr.iter().map(|v| v.to_f64()).sum::<f64>() / d as f64;
+        let var = xr
+            .iter()
+            .map(|v| {
+                let c = v.to_f64() - mean;
+                c * c
+            })
+            .sum::<f64>()
+            / d as f64;
+        let inv = 1.0 / (var + eps).sqrt();
+        // (v - mean) · inv as v · inv + (-mean · inv)
+        let (inv_t, shift_t) = (T::from_f64(inv), T::from_f64(-mean * inv));
+        for (j, (o, &v)) in yr.iter_mut().zip(xr).enumerate() {
+            let n = (v * inv_t + shift_t) * gamma[j];
+            *o = match beta {
+                Some(b) => n + b[j],
+                None => n,
+            };
+        }
+    })
 }
 
 /// Softmax over every row of `x [rows, d]`, shifted by the row maximum (as burn's `softmax`).
 pub(crate) fn softmax_rows<T: Elem>(x: &[T], d: usize) -> Vec<T> {
-    let mut y = vec![T::zero(); x.len()];
-    if d == 0 {
-        return y;
-    }
-    y.par_chunks_mut(NORM_BLOCK_ROWS * d)
-        .zip(x.par_chunks(NORM_BLOCK_ROWS * d))
-        .for_each(|(yb, xb)| {
-            for (yr, xr) in yb.chunks_exact_mut(d).zip(xb.chunks_exact(d)) {
-                let max = xr
-                    .iter()
-                    .map(|v| v.to_f64())
-                    .fold(f64::NEG_INFINITY, f64::max);
-                let mut sum = 0.0f64;
-                for (o, v) in yr.iter_mut().zip(xr) {
-                    let e = (v.to_f64() - max).exp();
-                    sum += e;
-                    *o = T::from_f64(e);
-                }
-                let inv = T::from_f64(1.0 / sum);
-                for o in yr.iter_mut() {
-                    *o = *o * inv;
-                }
-            }
-        });
-    y
+    map_rows(x, d, |xr, yr| {
+        let max = xr
+            .iter()
+            .map(|v| v.to_f64())
+            .fold(f64::NEG_INFINITY, f64::max);
+        let mut sum = 0.0f64;
+        for (o, v) in yr.iter_mut().zip(xr) {
+            let e = (v.to_f64() - max).exp();
+            sum += e;
+            *o = T::from_f64(e);
+        }
+        let inv = T::from_f64(1.0 / sum);
+        for o in yr.iter_mut() {
+            *o = *o * inv;
+        }
+    })
 }
 
 /// [`linear_rows`] on burn-ndarray tensors: `relu?(lin.forward(x))` for `x [..., d_in]`; `None`
