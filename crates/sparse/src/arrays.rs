@@ -4,7 +4,8 @@
 //! The input is validated as [`CoordSet::new`] validates it (every site inside the batch and spatial
 //! shape, no duplicates) and put in (b, x, y, z) order; the kernel map is built on a fresh coordinate
 //! set and the features are computed by the host kernels of [`crate::host`] straight on the slices
-//! (no tensors; the features are read where they lie, in the caller's row order, and the output is not copied).
+//! (no tensors; the features are read where they lie, in the caller's row order, and the output is
+//! not copied).
 
 use crate::coords::{pack, validate_sorted_order};
 use crate::host::{conv_forward, WeightView};

@@ -39,7 +39,6 @@ use crate::kernels::ModelBackend;
 use burn::module::Param;
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
-
 use burn::tensor::TensorData;
 use occ_geometry::{project_with, VoxelGrid};
 use occ_sparse::Coord;
