@@ -88,16 +88,9 @@ fn c_order_cow<'a, T: numpy::Element + Copy>(
     std::borrow::Cow::Owned(a.as_array().iter().copied().collect())
 }
 
-/// Values of an array in C order (whatever its memory layout).
+/// Values of an array in C order (whatever its memory layout), always a copy.
 fn c_order<T: numpy::Element + Copy>(a: &PyReadonlyArrayDyn<'_, T>) -> Vec<T> {
-    // `as_slice` also succeeds on Fortran-order arrays (it only asks for contiguity), whose memory
-    // is not in C order: only a C-contiguous array is copied as it lies.
-    if a.is_c_contiguous() {
-        if let Ok(s) = a.as_slice() {
-            return s.to_vec();
-        }
-    }
-    a.as_array().iter().copied().collect()
+    c_order_cow(a).into_owned()
 }
 
 /// A class array (any integer dtype, passed as int64) as bytes: values outside 0..=255 become
