@@ -80,6 +80,8 @@ fn protocol(dataset: &str) -> PyResult<Protocol> {
 fn c_order_cow<'a, T: numpy::Element + Copy>(
     a: &'a PyReadonlyArrayDyn<'_, T>,
 ) -> std::borrow::Cow<'a, [T]> {
+    // `as_slice` also succeeds on Fortran-order arrays (it only asks for contiguity), whose memory
+    // is not in C order: only a C-contiguous array is borrowed as it lies.
     if a.is_c_contiguous() {
         if let Ok(s) = a.as_slice() {
             return std::borrow::Cow::Borrowed(s);
