@@ -91,6 +91,21 @@ fn trace() -> bool {
     *TRACE.get_or_init(|| std::env::var_os("SPARSEOCC_TRACE").is_some())
 }
 
+/// With `SPARSEOCC_TRACE=sums`, the trace lines also give each tensor's sum and sum of absolute
+/// values: comparing them between two backends finds the first stage where the backends part.
+fn trace_sums<B: Backend, const D: usize>(t: &Tensor<B, D>) -> String {
+    static SUMS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let on = *SUMS.get_or_init(|| {
+        std::env::var("SPARSEOCC_TRACE").is_ok_and(|v| v.eq_ignore_ascii_case("sums"))
+    });
+    if !on || t.shape().num_elements() == 0 {
+        return String::new();
+    }
+    let s: f64 = t.clone().sum().into_scalar().elem();
+    let a: f64 = t.clone().abs().sum().into_scalar().elem();
+    format!(", sum {s:.6e}, |sum| {a:.6e}")
+}
+
 thread_local! {
     static TRACE_CLOCK: std::cell::Cell<Option<Instant>> = const { std::cell::Cell::new(None) };
     static PROFILE: RefCell<Records> = const { RefCell::new(None) };
@@ -226,7 +241,12 @@ pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
         let now = Instant::now();
         let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
         let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
-        eprintln!("[trace] {}: {ms:.1} ms, {:?}", stage.as_str(), done.dims());
+        eprintln!(
+            "[trace] {}: {ms:.1} ms, {:?}{}",
+            stage.as_str(),
+            done.dims(),
+            trace_sums(done)
+        );
     }
     if !on {
         return;
@@ -282,7 +302,11 @@ pub fn trace_mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
     let now = Instant::now();
     let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
     let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
-    eprintln!("[trace]   {name}: {ms:.1} ms, {:?}", done.dims());
+    eprintln!(
+        "[trace]   {name}: {ms:.1} ms, {:?}{}",
+        done.dims(),
+        trace_sums(done)
+    );
 }
 
 #[cfg(test)]
