@@ -1,18 +1,26 @@
-//! The burn backend the binary runs on: ndarray on the CPU by default, CUDA with `--features cuda`.
+//! The burn backend the binary runs on: ndarray on the CPU by default, CUDA with `--features cuda`,
+//! WebGPU with `--features wgpu` (any Vulkan/Metal/DX12 device, or lavapipe, Mesa's Vulkan driver on
+//! the CPU, which is how the GPU code path is tested on machines without a GPU).
+//!
+//! On the cubecl backends (CUDA, WebGPU) [`init`] also counts kernel compilations
+//! ([`kernel_compilations`]): `bench` and `check-backend` report how many happen after warm-up.
 
 use burn::backend::Autodiff;
 
 /// Inference backend.
-#[cfg(not(feature = "cuda"))]
+#[cfg(not(any(feature = "cuda", feature = "wgpu")))]
 pub type Infer = burn::backend::NdArray<f32>;
 /// Inference backend.
 #[cfg(feature = "cuda")]
 pub type Infer = burn_cuda::Cuda;
+/// Inference backend.
+#[cfg(all(feature = "wgpu", not(feature = "cuda")))]
+pub type Infer = burn_wgpu::Wgpu;
 
 /// Training backend.
 pub type Train = Autodiff<Infer>;
 
-/// The device to run on (CPU, or CUDA device 0).
+/// The device to run on (CPU; CUDA device 0; the default WebGPU adapter).
 pub fn device() -> burn::tensor::Device<Infer> {
     Default::default()
 }
@@ -28,6 +36,8 @@ pub fn describe() -> String {
                 "off"
             }
         )
+    } else if cfg!(feature = "wgpu") {
+        "WebGPU default adapter (burn-wgpu, WGSL), fp32, cubecl autotune off".to_string()
     } else {
         format!(
             "CPU, burn-ndarray, {} rayon threads, fp32",
@@ -35,5 +45,106 @@ pub fn describe() -> String {
                 .map(|n| n.get())
                 .unwrap_or(1)
         )
+    }
+}
+
+/// Sets the process up for the backend; call first thing in `main`. On the cubecl backends this
+/// turns cubecl's compilation log on at its basic level (one line per compiled kernel), routed to
+/// the `log` crate, where a small logger counts the lines; warnings and errors of cubecl and wgpu are
+/// printed to stderr. The cubecl configuration files (`cubecl.toml`) and `CUBECL_DEBUG_*` variables
+/// are read first and kept, with the compilation logger added.
+pub fn init() {
+    #[cfg(any(feature = "cuda", feature = "wgpu"))]
+    compile_count::install();
+}
+
+/// Kernels compiled so far by this process (None on the CPU backend, which compiles nothing).
+/// Compilations are logged asynchronously: call [`settled_kernel_compilations`] after a device sync
+/// to read a count that includes everything launched so far.
+pub fn kernel_compilations() -> Option<u64> {
+    #[cfg(any(feature = "cuda", feature = "wgpu"))]
+    {
+        Some(compile_count::COMPILES.load(std::sync::atomic::Ordering::SeqCst))
+    }
+    #[cfg(not(any(feature = "cuda", feature = "wgpu")))]
+    {
+        None
+    }
+}
+
+/// [`kernel_compilations`] once it has stopped changing for 200 ms (at most 5 s): cubecl hands each
+/// compilation's log line to a background task, so the count trails the launches by a moment.
+pub fn settled_kernel_compilations() -> Option<u64> {
+    let mut last = kernel_compilations()?;
+    let start = std::time::Instant::now();
+    let mut stable_since = std::time::Instant::now();
+    while start.elapsed() < std::time::Duration::from_secs(5) {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let now = kernel_compilations()?;
+        if now != last {
+            last = now;
+            stable_since = std::time::Instant::now();
+        } else if stable_since.elapsed() >= std::time::Duration::from_millis(200) {
+            break;
+        }
+    }
+    Some(last)
+}
+
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+mod compile_count {
+    use cubecl::config::compilation::CompilationLogLevel;
+    use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+    use cubecl_common::config::logger::LogCrateLevel;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// Kernels compiled so far.
+    pub static COMPILES: AtomicU64 = AtomicU64::new(0);
+
+    /// How cubecl's compilation log starts the entry of each compiled kernel (basic level; full
+    /// level, which `CUBECL_DEBUG_LOG` selects).
+    const MARKS: [&str; 2] = ["[Compiling kernel]", "[START_KERNEL_COMPILATION]"];
+
+    struct Counter;
+
+    impl log::Log for Counter {
+        fn enabled(&self, _: &log::Metadata) -> bool {
+            true
+        }
+
+        fn log(&self, record: &log::Record) {
+            let cubecl = record.target().starts_with("cubecl");
+            if cubecl && record.level() >= log::Level::Info {
+                let msg = record.args().to_string();
+                if MARKS.iter().any(|m| msg.starts_with(m)) {
+                    COMPILES.fetch_add(1, Ordering::SeqCst);
+                    if std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some() {
+                        eprintln!("{}", msg.lines().take(2).collect::<Vec<_>>().join(" "));
+                    }
+                    return;
+                }
+            }
+            if record.level() <= log::Level::Warn {
+                eprintln!("{} {}: {}", record.level(), record.target(), record.args());
+            }
+        }
+
+        fn flush(&self) {}
+    }
+
+    static COUNTER: Counter = Counter;
+
+    pub fn install() {
+        let mut config = CubeClRuntimeConfig::from_current_dir().override_from_env();
+        let logger = &mut config.compilation.logger;
+        if matches!(logger.level, CompilationLogLevel::Disabled) {
+            logger.level = CompilationLogLevel::Basic;
+        }
+        logger.log = Some(LogCrateLevel::Info);
+        CubeClRuntimeConfig::set(config);
+        // Another logger may already be installed (a test harness); then nothing is counted.
+        if log::set_logger(&COUNTER).is_ok() {
+            log::set_max_level(log::LevelFilter::Info);
+        }
     }
 }

@@ -114,6 +114,9 @@ pub struct BenchResult {
     pub profile_stages: Vec<StageProfile>,
     /// GFLOP of one forward pass by kind of op (`linear`, `conv2d`, `sparse_conv`, `dca_sampling`, ...).
     pub gflops_by_op: Vec<(String, f64)>,
+    /// Kernels compiled during the timed frames, after the warm-up (cubecl backends; `None` on the
+    /// CPU, which compiles nothing). Anything above 0 is a compilation inside a frame's latency.
+    pub compiles_after_warmup: Option<u64>,
 }
 
 /// One stage of the profiled passes.
@@ -230,7 +233,11 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
     let sample = ds.load::<rand_chacha::ChaCha8Rng>(0, None)?;
     let mut latency = Vec::new();
     let mut stages = Vec::new();
+    let mut compiled_at_warmup = None;
     for i in 0..args.warmup + args.frames.max(1) {
+        if i == args.warmup {
+            compiled_at_warmup = backend::settled_kernel_compilations();
+        }
         let t0 = Instant::now();
         let mut batch = collate::<Infer>(std::slice::from_ref(&sample), grid, &device)?;
         batch.target = None;
@@ -244,6 +251,10 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         }
         stages = out.stats;
     }
+    let compiles_after_warmup = match (compiled_at_warmup, backend::settled_kernel_compilations()) {
+        (Some(a), Some(b)) => Some(b - a),
+        _ => None,
+    };
     // Profiled pass: synchronise after every stage (this changes overlap, so it is kept apart), and
     // count the multiply-adds of every stage (the same in every pass: same input, same network).
     let mut sums: Vec<(String, f64, u64)> = Vec::new();
@@ -330,6 +341,7 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         profile_gflops_per_s: total_gflops / (total_ms / 1e3).max(1e-9),
         profile_stages,
         gflops_by_op,
+        compiles_after_warmup,
     })
 }
 
@@ -579,6 +591,9 @@ fn print_table(results: &[BenchResult], sgemm: f64) {
             .map(|(k, g)| format!("{k} {g:.2}"))
             .collect();
         println!("    GFLOP by op: {}", ops.join(", "));
+        if let Some(c) = r.compiles_after_warmup {
+            println!("    kernels compiled after the warm-up: {c}");
+        }
     }
     if let Some(r) = results.first() {
         println!(

@@ -1,11 +1,15 @@
 //! `sparseocc check-backend`: checks the backend this binary was built for (CUDA with
-//! `--features cuda`) against the NdArray CPU reference, on the same inputs and weights:
+//! `--features cuda`, WebGPU with `--features wgpu`, which runs on lavapipe on a machine without a
+//! GPU) against the NdArray CPU reference, on the same inputs and weights:
 //!
 //! - sparse convolutions (submanifold 3x3x3, strided regular, transposed) forward, and the gradient
 //!   with respect to the input features and weights through autodiff;
 //! - the image encoder (ResNet + FPN), weights copied through a checkpoint file;
-//! - one SparseOcc++ forward pass on the backend (runs, finite logits), and the sparse convolution
-//!   throughput (submanifold 3x3x3, C = 64, driving-like input) there.
+//! - the DCA sampling op, forward and the gradients of its values, offsets, weights and gate;
+//! - one SparseOcc++ forward pass (weights copied through a checkpoint file): the same voxels and
+//!   logits; then a second frame, counting the kernels compiled for it after the warm-up
+//!   (`compiles_after_warmup`, cubecl backends only);
+//! - the sparse convolution throughput (submanifold 3x3x3, C = 64, driving-like input) there.
 //!
 //! Exits with an error when a difference exceeds the tolerance. On a CPU build it compares NdArray
 //! with itself (a smoke test of the command).
@@ -118,7 +122,22 @@ fn to_vec<B: Backend, const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
         .unwrap_or_default()
 }
 
+/// Panics seen in any thread since [`count_panics`]: a cubecl device server runs on its own thread,
+/// and a kernel that fails there (an allocation beyond the device's limit, say) panics that thread
+/// while the caller reads whatever the output buffer holds.
+static PANICS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// Counts panics in every thread (keeping the default report).
+fn count_panics() {
+    let report = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        PANICS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        report(info);
+    }));
+}
+
 pub fn run(args: &CheckArgs) -> Result<()> {
+    count_panics();
     let dev = backend::device();
     let cpu_dev = Default::default();
     let coords = scene();
@@ -257,42 +276,171 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         results.push(serde_json::json!({"case": format!("encoder_level{l}"), "forward": e}));
     }
 
-    // A whole SparseOcc++ forward pass on the backend.
+    // Column sums over a long voxel axis (the losses' reductions), against f64 sums on the host.
+    for (rows, cols) in [(31_814usize, 3usize), (254_512, 3), (254_512, 20)] {
+        let mut r = lcg(rows as u64 + cols as u64);
+        let v: Vec<f32> = (0..rows * cols).map(|_| 0.5 + 0.5 * r()).collect();
+        let mut host = vec![0f64; cols];
+        for (i, x) in v.iter().enumerate() {
+            host[i % cols] += *x as f64;
+        }
+        let t = Tensor::<Infer, 2>::from_data(TensorData::new(v, [rows, cols]), &dev);
+        let got = to_vec(t.clone().sum_dim(0));
+        let host: Vec<f32> = host.iter().map(|&x| x as f32).collect();
+        let e = rel_err(&got, &host);
+        eprintln!("sum_dim(0) of [{rows}, {cols}]: rel err {e:.2e}");
+        worst = worst.max(e);
+        results.push(serde_json::json!({"case": format!("sum_dim0_{rows}x{cols}"), "forward": e}));
+    }
+
+    // DCA sampling (forward and gradients of values, offsets, weights and gate).
+    let (e, case) = dca_case(&cpu_dev, &dev)?;
+    worst = worst.max(e);
+    results.push(case);
+
+    // A whole SparseOcc++ forward pass on the backend against the reference, weights copied through
+    // a checkpoint file, then a second frame (another image, so another set of voxels): kernels
+    // compiled for it are the ones a steady stream of frames would keep compiling.
     let cfg = occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
-    let model = cfg.model.init::<Infer>(&dev)?;
-    let grid = occ_data::synthetic::Preset::KittiSmall.grid();
-    let batch = occ_model::Batch::<Infer> {
-        images: Tensor::from_data(
-            TensorData::new(
-                (0..3 * 128 * 416).map(|_| rnd()).collect::<Vec<f32>>(),
-                [1, 1, 3, 128, 416],
-            ),
-            &dev,
-        ),
-        cameras: vec![vec![demo_camera()]],
-        grid,
-        target: None,
-        points: None,
-    };
+    <Cpu as Backend>::seed(&cpu_dev, 5);
+    let cpu_model = cfg.model.init::<Cpu>(&cpu_dev)?;
+    let cpu_batch = tiny_batch::<Cpu>(frame(21), None, &cpu_dev);
+    let reference = cpu_model.forward(&cpu_batch)?;
+    let tmp = occ_data::formats::io::temp_sibling(&std::env::temp_dir().join("sparseocc-check"));
+    cpu_model.save_file(tmp.clone(), &rec)?;
+    let model = cfg
+        .model
+        .init::<Infer>(&dev)?
+        .load_file(tmp.clone(), &rec, &dev)
+        .context("loading the SparseOcc++ weights on the backend")?;
     let t0 = Instant::now();
-    let out = model.forward(&batch)?;
+    let out = model.forward(&tiny_batch(frame(21), None, &dev))?;
     let logits = to_vec(out.logits.clone());
+    let first_ms = t0.elapsed().as_secs_f64() * 1e3;
     let finite = logits.iter().all(|v| v.is_finite());
+    let same_voxels = out.coords == reference.coords;
+    let (e_model, beyond) = if same_voxels {
+        let r = to_vec(reference.logits);
+        let scale = r.iter().fold(0f64, |m, v| m.max(v.abs() as f64)).max(1e-12);
+        let beyond = logits
+            .iter()
+            .zip(&r)
+            .filter(|(a, b)| ((**a - **b).abs() as f64) > args.tol * scale)
+            .count();
+        (rel_err(&logits, &r), beyond)
+    } else {
+        (f64::INFINITY, logits.len())
+    };
     eprintln!(
-        "SparseOcc++ (synthetic_tiny) forward: {} voxels, logits finite: {finite}, {:.1} ms (first call)",
+        "SparseOcc++ (synthetic_tiny) forward: {} voxels (reference {}), same voxels: {same_voxels}, \
+         logits rel err {e_model:.2e} ({beyond} of {} beyond the tolerance), finite: {finite}, \
+         {first_ms:.1} ms (first call)",
         out.coords.len(),
-        t0.elapsed().as_secs_f64() * 1e3
+        reference.coords.len(),
+        logits.len(),
     );
-    results.push(serde_json::json!({"case": "sparseocc++_forward", "voxels": out.coords.len(), "finite": finite}));
+    worst = worst.max(e_model);
+    results.push(
+        serde_json::json!({"case": "sparseocc++_forward", "voxels": out.coords.len(),
+        "reference_voxels": reference.coords.len(), "same_voxels": same_voxels, "forward": e_model,
+        "logits_beyond_tolerance": beyond,
+        "finite": finite, "first_call_ms": first_ms}),
+    );
+    let warm = backend::settled_kernel_compilations();
+    let t0 = Instant::now();
+    let second = model.forward(&tiny_batch(frame(22), None, &dev))?;
+    let _ = to_vec(second.logits);
+    let second_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let compiles_after_warmup = match (warm, backend::settled_kernel_compilations()) {
+        (Some(a), Some(b)) => Some(b - a),
+        _ => None,
+    };
+    eprintln!(
+        "second frame: {} voxels (first {}), {second_ms:.1} ms, kernels compiled: {}",
+        second.coords.len(),
+        out.coords.len(),
+        compiles_after_warmup.map_or("n/a (CPU backend)".to_string(), |c| c.to_string())
+    );
+
+    // One SparseOcc++ training step (forward with labels, the losses, backward) against the
+    // reference: the loss and the gradient of every trainable parameter.
+    let load = |what: &str| format!("loading the SparseOcc++ weights for training ({what})");
+    let cpu_train = cfg
+        .model
+        .init::<Autodiff<Cpu>>(&cpu_dev)?
+        .load_file(tmp.clone(), &rec, &cpu_dev)
+        .with_context(|| load("reference"))?;
+    let dev_train = cfg
+        .model
+        .init::<Train>(&dev)?
+        .load_file(tmp.clone(), &rec, &dev)
+        .with_context(|| load("backend"))?;
+    let _ = std::fs::remove_file(tmp.with_extension("bin"));
+    let labels = tiny_labels(cfg.model.full_dims);
+    let step_r = train_grads(
+        &cpu_train,
+        &tiny_batch(frame(23), Some(labels.clone()), &cpu_dev),
+    )?;
+    let step_t = train_grads(&dev_train, &tiny_batch(frame(23), Some(labels), &dev))?;
+    let (loss_r, grads_r, loss_t, grads_t) =
+        (step_r.loss, &step_r.grads, step_t.loss, &step_t.grads);
+    for ((name, t), (_, r)) in step_t.terms.iter().zip(&step_r.terms) {
+        eprintln!("  loss term {name}: {t:.6} (reference {r:.6})");
+    }
+    let e_loss = rel_err(&[loss_t], &[loss_r]);
+    let mut e_grad = 0f64;
+    let mut worst_param = String::new();
+    for ((name, gt), (name_r, gr)) in grads_t.iter().zip(grads_r) {
+        let e = match (gt, gr) {
+            _ if name != name_r => f64::INFINITY,
+            (Some(a), Some(b)) => rel_err(a, b),
+            (None, None) => 0.0,
+            _ => f64::INFINITY,
+        };
+        if e > e_grad || worst_param.is_empty() {
+            e_grad = e_grad.max(e);
+            worst_param = name.clone();
+        }
+    }
+    if grads_t.len() != grads_r.len() {
+        e_grad = f64::INFINITY;
+    }
+    eprintln!(
+        "SparseOcc++ training step: loss {loss_t:.6} (reference {loss_r:.6}, rel err {e_loss:.2e}), \
+         {} parameter gradients, worst rel err {e_grad:.2e} ({worst_param})",
+        grads_t.len()
+    );
+    worst = worst.max(e_loss).max(e_grad);
+    results.push(
+        serde_json::json!({"case": "sparseocc++_train_step", "loss": e_loss,
+        "grad_params": grads_t.len(), "grad": e_grad, "grad_worst_param": worst_param}),
+    );
     if let Some(p) = &args.json {
         crate::util::write_json(
             p,
-            &serde_json::json!({"device": backend::describe(), "tolerance": args.tol, "worst": worst, "results": results}),
+            &serde_json::json!({"device": backend::describe(), "tolerance": args.tol, "worst": worst,
+                "compiles_after_warmup": compiles_after_warmup,
+                "panics": PANICS.load(std::sync::atomic::Ordering::SeqCst),
+                "kernel_compilations": backend::kernel_compilations(), "results": results}),
         )?;
+    }
+    let panics = PANICS.load(std::sync::atomic::Ordering::SeqCst);
+    if panics > 0 {
+        bail!(
+            "{}: {panics} panic(s) in the backend's threads (reported above); its results cannot be trusted",
+            backend::describe()
+        );
     }
     if !finite {
         bail!(
             "SparseOcc++ produced non-finite logits on {}",
+            backend::describe()
+        );
+    }
+    if let Some(c) = compiles_after_warmup.filter(|&c| c > 0) {
+        bail!(
+            "{}: {c} kernel(s) compiled for a second frame after the warm-up (set \
+             SPARSEOCC_LOG_COMPILES=1 to list them)",
             backend::describe()
         );
     }
@@ -308,6 +456,114 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         backend::describe()
     );
     Ok(())
+}
+
+/// A 128x416 random image, seeded.
+fn frame(seed: u64) -> Vec<f32> {
+    let mut r = lcg(seed);
+    (0..3 * 128 * 416).map(|_| r()).collect()
+}
+
+/// A one-frame batch of the `synthetic_tiny` setting (kitti-small grid, one 128x416 camera).
+fn tiny_batch<Bk: Backend>(
+    img: Vec<f32>,
+    target: Option<Vec<Vec<u8>>>,
+    device: &burn::tensor::Device<Bk>,
+) -> occ_model::Batch<Bk> {
+    occ_model::Batch {
+        images: Tensor::from_data(TensorData::new(img, [1, 1, 3, 128, 416]), device),
+        cameras: vec![vec![demo_camera()]],
+        grid: occ_data::synthetic::Preset::KittiSmall.grid(),
+        target,
+        points: None,
+    }
+}
+
+/// Labels for the training-step check on `dims`: a ground layer (class 9), a box (class 1) and an
+/// ignored column (255) in an empty scene (0).
+fn tiny_labels(dims: [usize; 3]) -> Vec<Vec<u8>> {
+    let mut grid = vec![0u8; dims[0] * dims[1] * dims[2]];
+    for x in 0..dims[0] {
+        for y in 0..dims[1] {
+            for z in 0..dims[2] {
+                let i = (x * dims[1] + y) * dims[2] + z;
+                grid[i] = if z < 2 {
+                    9
+                } else if (40..52).contains(&x) && (56..64).contains(&y) && z < 5 {
+                    1
+                } else if x == 70 && y == 70 {
+                    255
+                } else {
+                    0
+                };
+            }
+        }
+    }
+    vec![grid]
+}
+
+/// Loss and parameter gradients, by path in the module's visiting order, of one training step.
+fn train_grads<Bk>(model: &occ_model::OccNet<Bk>, batch: &occ_model::Batch<Bk>) -> Result<TrainStep>
+where
+    Bk: burn::tensor::backend::AutodiffBackend + occ_model::kernels::ModelBackend,
+{
+    struct Grads<'a, Bk: burn::tensor::backend::AutodiffBackend> {
+        grads: &'a Bk::Gradients,
+        path: Vec<String>,
+        out: Vec<(String, Option<Vec<f32>>)>,
+    }
+    impl<Bk: burn::tensor::backend::AutodiffBackend> burn::module::ModuleVisitor<Bk> for Grads<'_, Bk> {
+        fn enter_module(&mut self, name: &str, _container_type: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container_type: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<Bk, D>>) {
+            // Batch-norm running statistics are state, not trainable parameters.
+            if param.val().is_require_grad() {
+                let g = param.val().grad(self.grads).map(to_vec);
+                self.out.push((self.path.join("."), g));
+            }
+        }
+    }
+    let out = model.forward(batch)?;
+    let terms = out
+        .losses
+        .iter()
+        .map(|(k, l)| {
+            (
+                k.to_string(),
+                to_vec(l.clone()).first().copied().unwrap_or(f32::NAN),
+            )
+        })
+        .collect();
+    let loss = out
+        .total_loss()
+        .context("the training step computed no loss")?;
+    let loss_v = to_vec(loss.clone()).first().copied().unwrap_or(f32::NAN);
+    let grads = loss.backward();
+    let mut v = Grads::<Bk> {
+        grads: &grads,
+        path: Vec::new(),
+        out: Vec::new(),
+    };
+    model.visit(&mut v);
+    Ok(TrainStep {
+        loss: loss_v,
+        terms,
+        grads: v.out,
+    })
+}
+
+/// What [`train_grads`] measures of one training step.
+struct TrainStep {
+    /// The total loss.
+    loss: f32,
+    /// Each loss term, by name.
+    terms: Vec<(String, f32)>,
+    /// The gradient of every trainable parameter, by path, in the module's visiting order.
+    grads: Vec<(String, Option<Vec<f32>>)>,
 }
 
 /// A forward-looking KITTI-like camera at 416x128.
@@ -330,4 +586,157 @@ fn demo_camera() -> occ_model::CameraInput {
         img_from_lidar: mat4_mul(&k, &cam_from_lidar),
         cam_from_lidar,
     }
+}
+
+/// The inputs of the DCA sampling check, on the host: 600 queries seen by one or two of two
+/// 128x416 images, 2 levels (strides 8 and 16), 4 heads, 4 points, width 32.
+struct DcaCase {
+    hits: occ_model::kernels::ViewHits,
+    strides: [usize; 2],
+    values: Vec<TensorData>,
+    offsets: TensorData,
+    weights: TensorData,
+    gate: TensorData,
+}
+
+fn dca_inputs() -> DcaCase {
+    let (n, m, l, p, d) = (600usize, 4usize, 2usize, 4usize, 32usize);
+    let (h, w) = (128usize, 416usize);
+    let strides = [8usize, 16];
+    let mut r = lcg(17);
+    let mut hits = occ_model::kernels::ViewHits {
+        num_queries: n,
+        num_images: 2,
+        query: Vec::new(),
+        image: Vec::new(),
+        slot: Vec::new(),
+        uv: Vec::new(),
+        depth_m: Vec::new(),
+        views_per_query: vec![0; n],
+        max_per_image: 0,
+    };
+    for img in 0..2u32 {
+        let mut slot = 0u32;
+        for q in 0..n {
+            if (q + img as usize).is_multiple_of(3) {
+                continue;
+            }
+            hits.query.push(q as u32);
+            hits.image.push(img);
+            hits.slot.push(slot);
+            hits.uv.push([
+                (r() as f64 * 0.5 + 0.5) * (w - 1) as f64,
+                (r() as f64 * 0.5 + 0.5) * (h - 1) as f64,
+            ]);
+            hits.depth_m.push(5.0 + 20.0 * (r() as f64 * 0.5 + 0.5));
+            hits.views_per_query[q] += 1;
+            slot += 1;
+        }
+        hits.max_per_image = hits.max_per_image.max(slot as usize);
+    }
+    let values = strides
+        .iter()
+        .map(|s| {
+            let (hl, wl) = (h / s, w / s);
+            TensorData::new(
+                (0..2 * hl * wl * d).map(|_| r()).collect::<Vec<f32>>(),
+                [2, hl, wl, d],
+            )
+        })
+        .collect();
+    let offsets = TensorData::new(
+        (0..n * m * l * p * 2)
+            .map(|_| 3.0 * r())
+            .collect::<Vec<f32>>(),
+        [n, m, l, p, 2],
+    );
+    let weights = TensorData::new(
+        (0..n * m * l * p)
+            .map(|_| 0.5 + 0.5 * r())
+            .collect::<Vec<f32>>(),
+        [n, m, l, p],
+    );
+    let gate = TensorData::new(
+        (0..hits.query.len())
+            .map(|_| 0.5 + 0.5 * r())
+            .collect::<Vec<f32>>(),
+        [hits.query.len()],
+    );
+    DcaCase {
+        hits,
+        strides,
+        values,
+        offsets,
+        weights,
+        gate,
+    }
+}
+
+/// DCA sampling on the autodiff backend `Bk`: the output, then the gradients of `sum(y²)` with
+/// respect to the two value maps, the offsets, the weights and the gate, all flattened.
+fn dca_run<Bk>(case: &DcaCase, device: &burn::tensor::Device<Bk>) -> Result<Vec<Vec<f32>>>
+where
+    Bk: burn::tensor::backend::AutodiffBackend + occ_model::kernels::ModelBackend,
+{
+    let values: Vec<Tensor<Bk, 4>> = case
+        .values
+        .iter()
+        .map(|v| Tensor::from_data(v.clone(), device).require_grad())
+        .collect();
+    let offsets = Tensor::<Bk, 5>::from_data(case.offsets.clone(), device).require_grad();
+    let weights = Tensor::<Bk, 4>::from_data(case.weights.clone(), device).require_grad();
+    let gate = Tensor::<Bk, 1>::from_data(case.gate.clone(), device).require_grad();
+    let y = Bk::dca_sample(occ_model::kernels::DcaSample {
+        hits: &case.hits,
+        strides: &case.strides,
+        values: values.clone(),
+        offsets: offsets.clone(),
+        weights: weights.clone(),
+        gate: Some(gate.clone()),
+    });
+    let grads = y.clone().powf_scalar(2.0).sum().backward();
+    let mut out = vec![to_vec(y)];
+    for v in &values {
+        out.push(to_vec(
+            v.grad(&grads).context("DCA: no gradient of a value map")?,
+        ));
+    }
+    out.push(to_vec(
+        offsets.grad(&grads).context("DCA: no offset gradient")?,
+    ));
+    out.push(to_vec(
+        weights.grad(&grads).context("DCA: no weight gradient")?,
+    ));
+    out.push(to_vec(gate.grad(&grads).context("DCA: no gate gradient")?));
+    Ok(out)
+}
+
+/// The DCA sampling op on the backend under test against the NdArray reference: the largest
+/// relative error over the output and every gradient, and its JSON entry.
+fn dca_case(
+    cpu_dev: &burn::tensor::Device<Cpu>,
+    dev: &burn::tensor::Device<Infer>,
+) -> Result<(f64, serde_json::Value)> {
+    let case = dca_inputs();
+    let reference = dca_run::<Autodiff<Cpu>>(&case, cpu_dev)?;
+    let tested = dca_run::<Train>(&case, dev)?;
+    let names = [
+        "forward",
+        "grad_values_l0",
+        "grad_values_l1",
+        "grad_offsets",
+        "grad_weights",
+        "grad_gate",
+    ];
+    let mut entry = serde_json::json!({"case": "dca_sample", "hits": case.hits.len()});
+    let mut worst = 0f64;
+    let mut line = String::new();
+    for ((name, a), b) in names.iter().zip(&tested).zip(&reference) {
+        let e = rel_err(a, b);
+        worst = worst.max(e);
+        entry[*name] = serde_json::json!(e);
+        line.push_str(&format!(", {name} {e:.2e}"));
+    }
+    eprintln!("dca_sample: {} hits{line}", case.hits.len());
+    Ok((worst, entry))
 }

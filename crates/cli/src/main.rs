@@ -64,6 +64,7 @@ enum Cmd {
 
 fn main() {
     let cli = Cli::parse();
+    backend::init();
     let r = match &cli.cmd {
         Cmd::Demo(a) => cmd_demo::run(a),
         Cmd::Synth(a) => cmd_synth::run(a),

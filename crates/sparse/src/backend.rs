@@ -249,6 +249,10 @@ pub fn conv_weight_grad_per_offset<B: Backend>(
 /// Weight `w` is `[D0, K, D2]` (the layer's `[Cout, kx, ky, kz, Cin]` flattened); see
 /// [`host::WeightView`] for the meaning of `transposed`.
 pub trait SparseConvBackend: Backend {
+    /// Most values in one gathered `[rows, K·C_in]` block of the portable implicit GEMM: the
+    /// backend's largest buffer bounds it (a block beyond it fails to allocate).
+    const MAX_GATHER_ELEMS: usize = IMPLICIT_GEMM_MAX_ELEMS;
+
     /// `y[o] += W_k x[i]` over the pairs of `map`.
     ///
     /// # Shapes
@@ -259,11 +263,12 @@ pub trait SparseConvBackend: Backend {
         map: Arc<KernelMap>,
         transposed: bool,
     ) -> FloatTensor<Self> {
-        unwrap(conv_forward_portable::<Self>(
+        unwrap(conv_forward_portable_chunked::<Self>(
             wrap(x),
             wrap(w),
             &map,
             transposed,
+            Self::MAX_GATHER_ELEMS,
         ))
     }
 
@@ -278,12 +283,13 @@ pub trait SparseConvBackend: Backend {
         wshape: [usize; 3],
         transposed: bool,
     ) -> FloatTensor<Self> {
-        unwrap(conv_weight_grad_portable::<Self>(
+        unwrap(conv_weight_grad_portable_chunked::<Self>(
             wrap(x),
             wrap(dy),
             &map,
             wshape,
             transposed,
+            Self::MAX_GATHER_ELEMS,
         ))
     }
 }
@@ -481,6 +487,14 @@ where
 #[cfg(feature = "cuda")]
 impl SparseConvBackend for burn_cuda::Cuda {}
 
+/// WebGPU (WGSL; lavapipe on a machine without a GPU): the portable defaults, in gathered blocks of
+/// 64 MiB: WebGPU's default storage-buffer binding limit is 128 MiB (lavapipe refused a 219 MiB block
+/// of the 2^27-value default).
+#[cfg(feature = "wgpu")]
+impl SparseConvBackend for burn_wgpu::Wgpu {
+    const MAX_GATHER_ELEMS: usize = 1 << 24;
+}
+
 #[derive(Debug)]
 struct SparseConvBackwardOp;
 
@@ -510,6 +524,8 @@ impl<B: SparseConvBackend> Backward<B, 2> for SparseConvBackwardOp {
 }
 
 impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
+    const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
+
     fn sparse_conv(
         x: FloatTensor<Self>,
         w: FloatTensor<Self>,

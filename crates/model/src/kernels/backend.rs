@@ -187,3 +187,7 @@ impl<B: ModelBackend, C: CheckpointStrategy> ModelBackend for Autodiff<B, C> {
 /// CUDA: the portable defaults (burn's ops, run by cubecl kernels).
 #[cfg(feature = "cuda")]
 impl ModelBackend for burn_cuda::Cuda {}
+
+/// WebGPU (WGSL; lavapipe on a machine without a GPU): the portable defaults.
+#[cfg(feature = "wgpu")]
+impl ModelBackend for burn_wgpu::Wgpu {}
