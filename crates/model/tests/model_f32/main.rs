@@ -10,4 +10,5 @@ mod conv_host;
 mod host_kernels;
 mod image_encoder;
 mod pp_overfit;
+mod pth_cases;
 mod so_overfit;
