@@ -39,7 +39,7 @@ use burn::store::{
     TensorSnapshot, TensorSnapshotError,
 };
 use burn::tensor::backend::Backend;
-use burn::tensor::{get_device_settings, DType, Element, Shape, TensorData};
+use burn::tensor::{bf16, f16, get_device_settings, DType, Element, Shape, TensorData};
 use thiserror::Error;
 
 use crate::encoder::backbone::ResNet;
@@ -512,11 +512,13 @@ impl StorageType {
         }
     }
 
-    /// dtype of the decoded [`TensorData`] (half types are widened to f32, integers to i64).
+    /// dtype of the decoded [`TensorData`] (floats keep theirs, integers are widened to i64).
     fn dtype(self) -> DType {
         match self {
             Self::F64 => DType::F64,
-            Self::F32 | Self::F16 | Self::Bf16 => DType::F32,
+            Self::F32 => DType::F32,
+            Self::F16 => DType::F16,
+            Self::Bf16 => DType::BF16,
             Self::Bool => <bool as Element>::dtype(),
             _ => DType::I64,
         }
@@ -599,18 +601,18 @@ fn decode(t: &TensorRef, storage: &[u8]) -> Result<TensorData, String> {
                 .collect::<Vec<f32>>(),
             shape,
         ),
-        StorageType::F16 | StorageType::Bf16 => TensorData::new(
+        StorageType::F16 => TensorData::new(
             indices
                 .iter()
-                .map(|&i| {
-                    let bits = u16::from_le_bytes([el(i)[0], el(i)[1]]);
-                    if kind == StorageType::F16 {
-                        f16_to_f32(bits)
-                    } else {
-                        f32::from_bits(u32::from(bits) << 16)
-                    }
-                })
-                .collect::<Vec<f32>>(),
+                .map(|&i| f16::from_le_bytes([el(i)[0], el(i)[1]]))
+                .collect::<Vec<f16>>(),
+            shape,
+        ),
+        StorageType::Bf16 => TensorData::new(
+            indices
+                .iter()
+                .map(|&i| bf16::from_le_bytes([el(i)[0], el(i)[1]]))
+                .collect::<Vec<bf16>>(),
             shape,
         ),
         StorageType::Bool => TensorData::new(
@@ -639,24 +641,6 @@ fn decode(t: &TensorRef, storage: &[u8]) -> Result<TensorData, String> {
             shape,
         ),
     })
-}
-
-/// IEEE 754 binary16 → binary32.
-fn f16_to_f32(h: u16) -> f32 {
-    let sign = u32::from(h >> 15) << 31;
-    let exp = u32::from((h >> 10) & 0x1f);
-    let frac = u32::from(h & 0x3ff);
-    let bits = match (exp, frac) {
-        (0, 0) => sign,
-        (0, f) => {
-            // Subnormal: value = f · 2^-24.
-            let v = f as f32 * f32::from_bits(0x3380_0000); // 2^-24
-            return if sign != 0 { -v } else { v };
-        }
-        (0x1f, f) => sign | 0x7f80_0000 | (f << 13),
-        (e, f) => sign | ((e + 112) << 23) | (f << 13),
-    };
-    f32::from_bits(bits)
 }
 
 /// Pickle values (the subset `torch.save` produces); dicts and lists are shared like Python objects.
@@ -1112,17 +1096,6 @@ fn reduce(callable: &Pv, args: &Pv) -> Result<Pv, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn f16_conversion_matches_ieee() {
-        assert_eq!(f16_to_f32(0x3c00), 1.0);
-        assert_eq!(f16_to_f32(0xc000), -2.0);
-        assert_eq!(f16_to_f32(0x7bff), 65504.0);
-        assert_eq!(f16_to_f32(0x0001), 2f32.powi(-24));
-        assert_eq!(f16_to_f32(0x3555), 0.333_251_95);
-        assert!(f16_to_f32(0x7e00).is_nan());
-        assert_eq!(f16_to_f32(0xfc00), f32::NEG_INFINITY);
-    }
 
     #[test]
     fn strided_views_are_gathered_in_c_order() {
