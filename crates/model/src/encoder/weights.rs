@@ -2,13 +2,20 @@
 //! names) from PyTorch `.pth`/`.pt` files and `.safetensors` files into burn modules.
 //!
 //! Formats:
-//! - PyTorch: the zip format `torch.save` writes since torch 1.6 (`<name>/data.pkl` + `<name>/data/<key>`).
-//!   burn-store's `PytorchStore` needs its `pytorch` feature, which pulls `zip 8`, a crate this offline
-//!   workspace cannot fetch; so the archive is read here with the workspace `zip` crate and a small
-//!   pickle interpreter covering what `torch.save(state_dict)` emits (protocols 2-5: dicts,
-//!   `OrderedDict`, `torch._utils._rebuild_tensor_v2` / `_rebuild_parameter`, persistent storages,
-//!   memo, strided views). Nested dicts are flattened with `.` (so `{"state_dict": {...}}` gives
+//! - PyTorch: the zip format `torch.save` writes since torch 1.6 (`<name>/data.pkl` +
+//!   `<name>/data/<key>`), read here with the workspace `zip` crate and a small pickle interpreter
+//!   covering what `torch.save` emits (protocols 2-5: dicts, `OrderedDict`,
+//!   `torch._utils._rebuild_tensor_v2` / `_rebuild_parameter`, persistent storages, memo, strided
+//!   views at any offset; objects that are not tensors, such as numpy values in a checkpoint's
+//!   `meta`, are skipped). Nested dicts are flattened with `.` (so `{"state_dict": {...}}` gives
 //!   `state_dict.conv1.weight`). The legacy (pre-1.6, non-zip) format is not supported.
+//!   Why not burn-store's `PytorchStore` (feature `pytorch`, checked at 0.21.0): it ignores the strides
+//!   of a stored view, so a channels_last conv weight or a transposed tensor loads with its elements in
+//!   the wrong order and no error; it fills a missing or short storage with zeros; and it rejects the
+//!   whole file for pickle protocol 4/5 opcodes, for an object it does not know (a numpy scalar in
+//!   `meta`) and for a one-entry int-keyed dict (an optimizer's `state`). `tests/data/pth_cases` has one
+//!   file of each kind. Its feature would also add 38 crates (zip 8 with every codec, zstd's C library,
+//!   tar, crypto) for the formats it has and this reader lacks: legacy and tar.
 //! - safetensors: read with burn-store's `SafetensorsStore`.
 //!
 //! Key handling (burn-store's applier with its PyTorch adapter):
