@@ -9,6 +9,7 @@
 
 use crate::host::{self, HostFloat, WeightView};
 use crate::kernel_map::KernelMap;
+use crate::rows::{self, RowPlan};
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -292,6 +293,24 @@ pub trait SparseConvBackend: Backend {
             Self::MAX_GATHER_ELEMS,
         ))
     }
+
+    /// Scatter-add of rows over a plan: `out[r] = Σ_{h : dest[h] = r} values[h]`
+    /// ([`crate::rows`]). The default is burn's `select_assign` into zeros.
+    ///
+    /// # Shapes
+    /// - values: `[plan.n_in(), C]` -> `[plan.n_out(), C]`
+    fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        unwrap(rows::scatter_add_rows_portable::<Self>(wrap(values), &plan))
+    }
+
+    /// Gather of rows over a plan: `out[h] = x[dest[h]]` ([`crate::rows`]); under `Autodiff`
+    /// its backward is [`SparseConvBackend::scatter_add_rows`]. The default is burn's `select`.
+    ///
+    /// # Shapes
+    /// - x: `[plan.n_out(), C]` -> `[plan.n_in(), C]`
+    fn gather_rows(x: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        rows::gather_rows_portable::<Self>(x, &plan)
+    }
 }
 
 fn host_forward<B: Backend>(
@@ -484,8 +503,15 @@ where
     }
 }
 
+/// CUDA: the portable defaults, with the row scatter-add as a cubecl segment sum ([`crate::cube`]).
 #[cfg(feature = "cuda")]
-impl SparseConvBackend for burn_cuda::Cuda {}
+impl SparseConvBackend for burn_cuda::Cuda {
+    fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        crate::cube::fusion_scatter_add_rows::<cubecl::cuda::CudaRuntime, f32, i32, u8>(
+            values, &plan,
+        )
+    }
+}
 
 /// WebGPU (WGSL; lavapipe on a machine without a GPU): the portable defaults, in gathered blocks of
 /// 64 MiB: WebGPU's default storage-buffer binding limit is 128 MiB (lavapipe refused a 219 MiB block
@@ -493,6 +519,10 @@ impl SparseConvBackend for burn_cuda::Cuda {}
 #[cfg(feature = "wgpu")]
 impl SparseConvBackend for burn_wgpu::Wgpu {
     const MAX_GATHER_ELEMS: usize = 1 << 24;
+
+    fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        crate::cube::fusion_scatter_add_rows::<burn_wgpu::WgpuRuntime, f32, i32, u32>(values, &plan)
+    }
 }
 
 #[derive(Debug)]
@@ -523,8 +553,66 @@ impl<B: SparseConvBackend> Backward<B, 2> for SparseConvBackwardOp {
     }
 }
 
+/// Backward of the row scatter-add: `dv = dout[dest]`.
+#[derive(Debug)]
+struct ScatterRowsBackwardOp;
+
+impl<B: SparseConvBackend> Backward<B, 1> for ScatterRowsBackwardOp {
+    type State = Arc<RowPlan>;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dout = grads.consume::<B>(&ops.node);
+        if let Some(node) = &ops.parents[0] {
+            grads.register::<B>(node.id, B::gather_rows(dout, ops.state));
+        }
+    }
+}
+
+/// Backward of the row gather: `dx = scatter_add(dout)`.
+#[derive(Debug)]
+struct GatherRowsBackwardOp;
+
+impl<B: SparseConvBackend> Backward<B, 1> for GatherRowsBackwardOp {
+    type State = Arc<RowPlan>;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dout = grads.consume::<B>(&ops.node);
+        if let Some(node) = &ops.parents[0] {
+            grads.register::<B>(node.id, B::scatter_add_rows(dout, ops.state));
+        }
+    }
+}
+
 impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
     const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
+
+    fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        match ScatterRowsBackwardOp
+            .prepare::<C>([values.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::scatter_add_rows(values.primitive, plan.clone());
+                prep.finish(plan, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::scatter_add_rows(values.primitive, plan)),
+        }
+    }
+
+    fn gather_rows(x: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
+        match GatherRowsBackwardOp
+            .prepare::<C>([x.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::gather_rows(x.primitive, plan.clone());
+                prep.finish(plan, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::gather_rows(x.primitive, plan)),
+        }
+    }
 
     fn sparse_conv(
         x: FloatTensor<Self>,

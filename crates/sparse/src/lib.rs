@@ -13,6 +13,8 @@ pub mod arrays;
 pub mod backend;
 pub mod conv;
 pub mod coords;
+#[cfg(feature = "cube")]
+pub mod cube;
 pub mod error;
 pub mod flops;
 mod fused;
@@ -21,6 +23,7 @@ pub mod kernel_map;
 pub mod norm;
 pub mod ops;
 pub mod pool;
+pub mod rows;
 pub mod tensor;
 
 pub use backend::SparseConvBackend;
@@ -29,4 +32,5 @@ pub use coords::{full_grid_coords, Coord, CoordSet};
 pub use error::{Result, SparseError};
 pub use kernel_map::{ConvGeometry, KernelMap, KernelMapKey, MapKind};
 pub use pool::{SparseMaxPool3d, SparseMaxPool3dConfig};
+pub use rows::{gather_rows, scatter_add_rows, sum_rows, RowPlan};
 pub use tensor::SparseTensor;

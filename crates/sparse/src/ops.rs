@@ -4,7 +4,9 @@
 use crate::backend::index_tensor;
 use crate::coords::{pack, Coord, CoordSet};
 use crate::error::{Result, SparseError};
+use crate::rows::{scatter_add_rows, RowPlan};
 use crate::tensor::SparseTensor;
+use crate::SparseConvBackend;
 use burn::prelude::*;
 use std::sync::Arc;
 
@@ -45,7 +47,10 @@ fn union_sets(a: &CoordSet, b: &CoordSet) -> (Vec<Coord>, Vec<u32>, Vec<u32>) {
 
 /// Sum of two sparse tensors over the union of their sites (spconv `sparse_add`); a site present in only
 /// one tensor keeps that tensor's features. When both share the same coordinate set, this is a plain add.
-pub fn add<B: Backend>(a: &SparseTensor<B>, b: &SparseTensor<B>) -> Result<SparseTensor<B>> {
+pub fn add<B: SparseConvBackend>(
+    a: &SparseTensor<B>,
+    b: &SparseTensor<B>,
+) -> Result<SparseTensor<B>> {
     if a.channels() != b.channels() {
         return Err(SparseError::Shape(format!(
             "add: {} vs {} channels",
@@ -58,20 +63,9 @@ pub fn add<B: Backend>(a: &SparseTensor<B>, b: &SparseTensor<B>) -> Result<Spars
     }
     check_frame(a, b)?;
     let (coords, ia, ib) = union_sets(a.coord_set(), b.coord_set());
-    let device = a.device();
-    let feats = Tensor::<B, 2>::zeros([coords.len(), a.channels()], &device)
-        .select_assign(
-            0,
-            index_tensor::<B>(&ia, &device),
-            a.feats().clone(),
-            burn::tensor::IndexingUpdateOp::Add,
-        )
-        .select_assign(
-            0,
-            index_tensor::<B>(&ib, &device),
-            b.feats().clone(),
-            burn::tensor::IndexingUpdateOp::Add,
-        );
+    let n = coords.len();
+    let feats = scatter_add_rows(a.feats().clone(), &Arc::new(RowPlan::new(ia, n)?))
+        + scatter_add_rows(b.feats().clone(), &Arc::new(RowPlan::new(ib, n)?));
     let set =
         CoordSet::from_valid_unique(coords, a.spatial_shape(), a.batch_size(), a.tensor_stride());
     SparseTensor::from_parts(Arc::new(set), feats)
@@ -79,7 +73,10 @@ pub fn add<B: Backend>(a: &SparseTensor<B>, b: &SparseTensor<B>) -> Result<Spars
 
 /// Adds new sites with zero features (sites already present are ignored). The original sites keep
 /// their features. Used by geometry-guided propagation (new voxels are zero-initialised).
-pub fn extend_zero<B: Backend>(t: &SparseTensor<B>, extra: &[Coord]) -> Result<SparseTensor<B>> {
+pub fn extend_zero<B: SparseConvBackend>(
+    t: &SparseTensor<B>,
+    extra: &[Coord],
+) -> Result<SparseTensor<B>> {
     let set = t.coord_set();
     let shape = t.spatial_shape();
     for (row, &c) in extra.iter().enumerate() {
@@ -107,12 +104,9 @@ pub fn extend_zero<B: Backend>(t: &SparseTensor<B>, extra: &[Coord]) -> Result<S
         .map(|&c| keys.binary_search(&pack(c)).map(|r| r as u32).unwrap_or(0))
         .collect();
     let coords: Vec<Coord> = keys.into_iter().map(crate::coords::unpack).collect();
-    let device = t.device();
-    let feats = Tensor::<B, 2>::zeros([coords.len(), t.channels()], &device).select_assign(
-        0,
-        index_tensor::<B>(&rows, &device),
+    let feats = scatter_add_rows(
         t.feats().clone(),
-        burn::tensor::IndexingUpdateOp::Add,
+        &Arc::new(RowPlan::new(rows, coords.len())?),
     );
     let new_set = CoordSet::from_valid_unique(coords, shape, set.batch_size(), set.tensor_stride());
     SparseTensor::from_parts(Arc::new(new_set), feats)

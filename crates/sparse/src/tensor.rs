@@ -101,23 +101,25 @@ impl<B: Backend> SparseTensor<B> {
     ///
     /// # Shapes
     /// - returns `[B, C, X, Y, Z]`
-    pub fn to_dense(&self) -> Tensor<B, 5> {
+    pub fn to_dense(&self) -> Tensor<B, 5>
+    where
+        B: crate::SparseConvBackend,
+    {
         let [sx, sy, sz] = self.spatial_shape();
         let b = self.batch_size();
         let c = self.channels();
-        let device = self.device();
         let lin: Vec<u32> = self
             .coords
             .linear_indices()
             .into_iter()
             .map(|i| i as u32)
             .collect();
-        let flat = Tensor::<B, 2>::zeros([b * sx * sy * sz, c], &device).select_assign(
-            0,
-            index_tensor::<B>(&lin, &device),
-            self.feats.clone(),
-            burn::tensor::IndexingUpdateOp::Add,
-        );
+        let cells = b * sx * sy * sz;
+        // Sites lie inside the grid (checked when the coordinate set was built), and row indices
+        // are 32-bit here as before.
+        let plan = crate::rows::RowPlan::new(lin, cells)
+            .expect("active sites index a grid of fewer than 2^32 cells");
+        let flat = crate::rows::scatter_add_rows(self.feats.clone(), &Arc::new(plan));
         flat.reshape([b, sx, sy, sz, c]).permute([0, 4, 1, 2, 3])
     }
 
