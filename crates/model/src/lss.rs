@@ -38,9 +38,10 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::activation::{relu, sigmoid, softmax};
-use burn::tensor::{IndexingUpdateOp, TensorData};
+use burn::tensor::TensorData;
 use occ_geometry::{mat4_inverse, mat4_mul, Mat4, VoxelGrid};
-use occ_sparse::SparseTensor;
+use occ_sparse::{gather_rows, scatter_add_rows, RowPlan, SparseConvBackend, SparseTensor};
+use std::sync::Arc;
 
 /// Number of camera-parameter values fed to the camera-aware gates.
 pub const CAM_PARAM_CHANNELS: usize = 21;
@@ -453,11 +454,11 @@ fn unproject(lidar_from_img: &Mat4, u: f64, v: f64, d: f64) -> Option<[f64; 3]> 
 
 /// Sum-pools depth-weighted context features: `out[rows[p]] += softmax(depth)[p] · context[pixel(p)]`
 /// for every frustum point `p` with `rows[p] < n_rows` (other points are dropped). Differentiable
-/// with respect to both inputs (burn `select` + `select_assign` with [`IndexingUpdateOp::Add`]).
+/// with respect to both inputs (row gathers and a row scatter-add: `occ_sparse::rows`).
 ///
 /// # Shapes
 /// - depth_prob: `[B*V, D, h, w]`, context: `[B*V, C, h, w]`, rows: `B*V*D*h*w` -> `[n_rows, C]`
-pub fn splat<B: Backend>(
+pub fn splat<B: SparseConvBackend>(
     depth_prob: Tensor<B, 4>,
     context: Tensor<B, 4>,
     rows: &[u32],
@@ -481,9 +482,9 @@ pub fn splat<B: Backend>(
     for (p, &r) in rows.iter().enumerate() {
         if (r as usize) < n_rows {
             let pix = (p / (d * hw)) * hw + p % hw;
-            point_idx.push(p as i64);
-            pixel_idx.push(pix as i64);
-            target.push(r as i64);
+            point_idx.push(p as u32);
+            pixel_idx.push(pix as u32);
+            target.push(r);
         }
     }
     let out = Tensor::<B, 2>::zeros([n_rows, c], &device);
@@ -493,16 +494,21 @@ pub fn splat<B: Backend>(
     let n = target.len();
     // One multiply-add per (point, channel): the depth-weighted context added into its voxel.
     crate::profile::add_matmul("lss_splat", 1, n, 1, c);
-    let idx = |v: Vec<i64>| Tensor::<B, 1, Int>::from_data(TensorData::new(v, [n]), &device);
-    let prob = depth_prob
-        .reshape([bv * d * hw])
-        .select(0, idx(point_idx))
-        .reshape([n, 1]);
-    let ctx = context
-        .permute([0, 2, 3, 1])
-        .reshape([bv * hw, c])
-        .select(0, idx(pixel_idx));
-    Ok(out.select_assign(0, idx(target), ctx * prob, IndexingUpdateOp::Add))
+    // Gathers and the scatter-add as row plans (occ_sparse::rows): a segment sum per voxel on the
+    // cubecl backends instead of burn's per-column `select_assign` loop.
+    let plan = |dest: Vec<u32>, n_out: usize| -> Result<Arc<RowPlan>, ModelError> {
+        Ok(Arc::new(RowPlan::new(dest, n_out)?))
+    };
+    let prob = gather_rows(
+        depth_prob.reshape([bv * d * hw, 1]),
+        &plan(point_idx, bv * d * hw)?,
+    );
+    let ctx = gather_rows(
+        context.permute([0, 2, 3, 1]).reshape([bv * hw, c]),
+        &plan(pixel_idx, bv * hw)?,
+    );
+    debug_assert_eq!(prob.dims()[0], n);
+    Ok(out + scatter_add_rows(ctx * prob, &plan(target, n_rows)?))
 }
 
 impl<B: Backend> LssOutput<B> {
@@ -513,7 +519,10 @@ impl<B: Backend> LssOutput<B> {
 
     /// The non-empty voxels as a sparse tensor on the LSS grid: the sites hit by at least one
     /// frustum point, with their pooled features. Errors when no point hits the grid.
-    pub fn splat_sparse(&self) -> Result<SparseTensor<B>, ModelError> {
+    pub fn splat_sparse(&self) -> Result<SparseTensor<B>, ModelError>
+    where
+        B: SparseConvBackend,
+    {
         let (coords, rows) = self.frustum.hit_voxels();
         if coords.is_empty() {
             return Err(ModelError::Input(
@@ -531,7 +540,10 @@ impl<B: Backend> LssOutput<B> {
     }
 
     /// The pooled volume as a dense grid `[B, C, X, Y, Z]` (the dense baseline's input).
-    pub fn splat_dense(&self) -> Result<Tensor<B, 5>, ModelError> {
+    pub fn splat_dense(&self) -> Result<Tensor<B, 5>, ModelError>
+    where
+        B: SparseConvBackend,
+    {
         let [sx, sy, sz] = self.frustum.grid.dims;
         let b = self.frustum.batch_size;
         let c = self.context.dims()[1];

@@ -106,7 +106,13 @@ fn trace_sums<B: Backend, const D: usize>(t: &Tensor<B, D>) -> String {
     format!(", sum {s:.6e}, |sum| {a:.6e}")
 }
 
+/// Stage outputs kept by [`capture`]: name and values, in order.
+pub type Captures = Vec<(String, Vec<f32>)>;
+
 thread_local! {
+    /// Stage outputs read back at every mark while [`capture`] is on (to compare two backends
+    /// stage by stage: `sparseocc check-backend`).
+    static CAPTURE: RefCell<Option<Captures>> = const { RefCell::new(None) };
     static TRACE_CLOCK: std::cell::Cell<Option<Instant>> = const { std::cell::Cell::new(None) };
     static PROFILE: RefCell<Records> = const { RefCell::new(None) };
     static MACS_ON: Cell<bool> = const { Cell::new(false) };
@@ -215,6 +221,40 @@ fn count_linear<B: Backend, const D: usize>(lin: &Linear<B>, x: &Tensor<B, D>) {
     }
 }
 
+/// Turns the capture of stage outputs on (clearing earlier ones) or off for this thread: every
+/// [`mark`] and [`trace_mark`] then reads its tensor back to the host. For diagnosis only (it
+/// synchronises and copies every stage output).
+pub fn capture(on: bool) {
+    CAPTURE.with(|c| *c.borrow_mut() = on.then(Vec::new));
+}
+
+/// The stage outputs captured since [`capture`] was turned on, cleared.
+pub fn take_captures() -> Captures {
+    CAPTURE.with(|c| {
+        c.borrow_mut()
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
+    })
+}
+
+fn capturing() -> bool {
+    CAPTURE.with(|c| c.borrow().is_some())
+}
+
+fn capture_push<B: Backend, const D: usize>(name: &str, t: &Tensor<B, D>) {
+    let values = t
+        .to_data()
+        .convert::<f32>()
+        .to_vec::<f32>()
+        .unwrap_or_default();
+    CAPTURE.with(|c| {
+        if let Some(v) = c.borrow_mut().as_mut() {
+            v.push((name.to_string(), values));
+        }
+    });
+}
+
 /// Restarts the clock (call at the start of a forward pass).
 pub fn start() {
     if trace() {
@@ -229,6 +269,9 @@ pub fn start() {
 
 /// Ends `stage`: synchronises on `done` and records the milliseconds since the last mark.
 pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
+    if capturing() {
+        capture_push(stage.as_str(), done);
+    }
     let on = PROFILE.with(|p| p.borrow().is_some());
     if !on && !trace() {
         return;
@@ -289,9 +332,12 @@ pub fn take_ops() -> Vec<(&'static str, u64)> {
     OPS.with(|o| std::mem::take(&mut *o.borrow_mut()))
 }
 
-/// A finer mark for `SPARSEOCC_TRACE` only (a layer inside a stage): synchronises and prints when
-/// tracing, does nothing otherwise, and never enters the stage records.
+/// A finer mark for `SPARSEOCC_TRACE` and [`capture`] only (a layer inside a stage): synchronises
+/// and prints when tracing, does nothing otherwise, and never enters the stage records.
 pub fn trace_mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
+    if capturing() {
+        capture_push(name, done);
+    }
     if !trace() {
         return;
     }

@@ -61,14 +61,15 @@ pub fn conv_bn_portable<B: Backend>(
     bn_relu(conv.forward(x), bn, apply_relu)
 }
 
-/// `relu?(bn?(y))` with burn's `BatchNorm::forward` and `relu`.
+/// `relu?(bn?(y))` with burn's `BatchNorm` (its training statistics summed in two levels:
+/// [`occ_sparse::norm::batch_norm`]) and `relu`.
 pub(crate) fn bn_relu<B: Backend>(
     y: Tensor<B, 4>,
     bn: Option<&BatchNorm<B>>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
     let y = match bn {
-        Some(bn) => bn.forward(y),
+        Some(bn) => occ_sparse::norm::batch_norm(bn, y),
         None => y,
     };
     if apply_relu {

@@ -8,7 +8,9 @@
 
 use crate::sample::bilinear_sample;
 use burn::prelude::*;
-use burn::tensor::{IndexingUpdateOp, TensorData};
+use burn::tensor::TensorData;
+use occ_sparse::{gather_rows, scatter_add_rows, RowPlan, SparseConvBackend};
+use std::sync::Arc;
 
 /// Which views see which query: one entry per (query, view) hit, sorted by image then query.
 /// Built by [`crate::sparseocc_pp::dca::project_queries`].
@@ -76,17 +78,13 @@ impl<B: Backend> DcaSample<'_, B> {
     }
 }
 
-fn int_tensor<B: Backend>(v: &[u32], device: &B::Device) -> Tensor<B, 1, Int> {
-    occ_sparse::backend::index_tensor::<B>(v, device)
-}
-
 /// The sampling composed of burn tensor ops (differentiable; any backend): the hits are laid out per
 /// image in a padded sampling grid, one `grid_sample` per level, weighted, summed over the levels,
 /// gated, scattered onto their queries and divided by each query's number of views.
 ///
 /// # Shapes
 /// see [`DcaSample`]; returns `[N, D]`
-pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
+pub fn sample_tensor_ops<B: SparseConvBackend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
     let (m, p) = s.heads_points();
     let d = s.width();
     let DcaSample {
@@ -101,9 +99,14 @@ pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
     let n = offsets.dims()[0];
     let dh = d / m;
     let nh = hits.len();
-    let qidx = int_tensor::<B>(&hits.query, &device);
-    let off = offsets.select(0, qidx.clone()); // [nh, M, L, P, 2]
-    let wts = weights.select(0, qidx.clone()); // [nh, M, L, P]
+    // Hits by query (gathers from the queries, and the final scatter onto them) and by padded
+    // slot of their image (the sampling grid), as row plans: a deterministic segment sum on the
+    // cubecl backends instead of burn's per-column `select_assign` loop (occ_sparse::rows).
+    let by_query = row_plan(hits.query.clone(), n);
+    let [_, _, nl, _, _] = offsets.dims();
+    let off =
+        gather_rows(offsets.reshape([n, m * nl * p * 2]), &by_query).reshape([nh, m, nl, p, 2]);
+    let wts = gather_rows(weights.reshape([n, m * nl * p]), &by_query).reshape([nh, m, nl, p]);
     let pmax = hits.max_per_image;
     let slot: Vec<u32> = hits
         .image
@@ -111,7 +114,12 @@ pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
         .zip(&hits.slot)
         .map(|(&i, &s)| i * pmax as u32 + s)
         .collect();
-    let slot = int_tensor::<B>(&slot, &device);
+    let n_images = hits
+        .image
+        .iter()
+        .map(|&i| i as usize + 1)
+        .max()
+        .unwrap_or(0);
     let mut acc: Option<Tensor<B, 3>> = None;
     for (lvl, (v, &stride)) in values.into_iter().zip(strides).enumerate() {
         let [bv, fh, fw, _] = v.dims();
@@ -130,8 +138,9 @@ pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
         );
         let off_l = off.clone().narrow(2, lvl, 1).reshape([nh, m, p, 2]);
         let loc = off_l * scale + refs; // [nh, M, P, 2]
-        let grid = Tensor::<B, 4>::zeros([bv * pmax, m, p, 2], &device)
-            .select_assign(0, slot.clone(), loc, IndexingUpdateOp::Add)
+        let by_slot = row_plan(slot.clone(), bv.max(n_images) * pmax);
+        let grid = scatter_add_rows(loc.reshape([nh, m * p * 2]), &by_slot)
+            .slice([0..bv * pmax, 0..m * p * 2])
             .reshape([bv, pmax, m, p, 2])
             .permute([0, 2, 1, 3, 4])
             .reshape([bv * m, pmax, p, 2]);
@@ -143,8 +152,9 @@ pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
         let sampled = bilinear_sample(maps, grid) // [bv*M, dh, pmax, P]
             .reshape([bv, m, dh, pmax, p])
             .permute([0, 3, 1, 4, 2])
-            .reshape([bv * pmax, m, p, dh])
-            .select(0, slot.clone()); // [nh, M, P, dh]
+            .reshape([bv * pmax, m * p * dh]);
+        let sampled =
+            gather_rows(pad_rows(sampled, by_slot.n_out()), &by_slot).reshape([nh, m, p, dh]);
         let w_l = wts.clone().narrow(2, lvl, 1).reshape([nh, m, p, 1]);
         let contrib = (sampled * w_l).sum_dim(2).reshape([nh, m, dh]);
         acc = Some(match acc {
@@ -164,6 +174,20 @@ pub fn sample_tensor_ops<B: Backend>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
         .map(|&c| if c == 0 { 0.0 } else { 1.0 / c as f64 })
         .collect();
     let inv = Tensor::<B, 2>::from_data(TensorData::new(inv, [n, 1]), &device);
-    Tensor::<B, 2>::zeros([n, d], &device).select_assign(0, qidx, per_hit, IndexingUpdateOp::Add)
-        * inv
+    scatter_add_rows(per_hit, &by_query) * inv
+}
+
+/// A row plan of host indices known to be in range (built by the hit lists of this module).
+fn row_plan(dest: Vec<u32>, n_out: usize) -> Arc<RowPlan> {
+    Arc::new(RowPlan::new(dest, n_out).expect("DCA hit indices are in range by construction"))
+}
+
+/// `x` with zero rows appended up to `rows`.
+fn pad_rows<B: Backend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> {
+    let [r, c] = x.dims();
+    if r >= rows {
+        return x;
+    }
+    let device = x.device();
+    Tensor::cat(vec![x, Tensor::zeros([rows - r, c], &device)], 0)
 }

@@ -11,6 +11,7 @@ use super::{check_labels, host_tensor, neg_log_capped, select_rows, valid_rows, 
 use crate::error::ModelError;
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
+use occ_sparse::sum_rows;
 
 /// `num / den` where `den > 0`, and `1` (a BCE term of 0 with gradient 0) where `den <= 0`.
 fn safe_ratio<B: Backend, const D: usize>(num: Tensor<B, D>, den: Tensor<B, D>) -> Tensor<B, D> {
@@ -135,13 +136,15 @@ pub fn sem_scal_loss_probs<B: Backend>(
         onehot[i * cp + slot[y as usize]] = 1.0;
     }
     let t = host_tensor(onehot, [n, cp], &p);
-    let nominator = (p.clone() * t.clone()).sum_dim(0); // [1, cp]
-    let sum_p = p.clone().sum_dim(0);
+    // Column sums over the voxel axis in two levels (occ_sparse::sum_rows: burn's `sum_dim(0)`
+    // loops over every voxel on one thread per class on the cubecl backends).
+    let nominator = sum_rows(p.clone() * t.clone()); // [1, cp]
+    let sum_p = sum_rows(p.clone());
     let precision = neg_log_capped(safe_ratio(nominator.clone(), sum_p));
     let pos: Vec<f64> = classes.iter().map(|&k| count[k] as f64).collect();
     let neg: Vec<f64> = pos.iter().map(|&x| n as f64 - x).collect();
     let recall = neg_log_capped(nominator / host_tensor(pos, [1, cp], &t));
-    let spec_num = (p.neg().add_scalar(1.0) * t.clone().neg().add_scalar(1.0)).sum_dim(0);
+    let spec_num = sum_rows(p.neg().add_scalar(1.0) * t.clone().neg().add_scalar(1.0));
     let specificity = neg_log_capped(safe_ratio(spec_num, host_tensor(neg, [1, cp], &t)));
     Ok((precision + recall + specificity)
         .sum()

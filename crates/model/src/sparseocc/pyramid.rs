@@ -29,8 +29,9 @@ use burn::module::{Initializer, Param};
 use burn::nn::{GroupNorm, GroupNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
-use burn::tensor::{IndexingUpdateOp, TensorData};
-use occ_sparse::{Coord, SparseTensor};
+use burn::tensor::TensorData;
+use occ_sparse::{gather_rows, scatter_add_rows, Coord, RowPlan, SparseConvBackend, SparseTensor};
+use std::sync::Arc;
 
 /// Configuration of [`SparsePyramid`].
 #[derive(Config, Debug)]
@@ -102,7 +103,10 @@ impl<B: Backend> SparsePyramid<B> {
     /// # Shapes
     /// - levels: level `l` has `N_l` sites x `in_channels[l]` at stride `2^l`
     /// - returns levels with `N_l` sites x `out_channels`, mask features `N_0 x out_channels`
-    pub fn forward(&self, levels: &[SparseTensor<B>]) -> Result<PyramidOutput<B>, ModelError> {
+    pub fn forward(&self, levels: &[SparseTensor<B>]) -> Result<PyramidOutput<B>, ModelError>
+    where
+        B: SparseConvBackend,
+    {
         if levels.len() != self.proj.len() {
             return Err(ModelError::Input(format!(
                 "pyramid.rs: {} levels for a pyramid of {}",
@@ -229,7 +233,7 @@ pub fn interpolation_weights<B: Backend>(
 ///
 /// # Shapes
 /// - src: `N_s x C` -> `[N_d, C]`
-pub fn interpolate<B: Backend>(
+pub fn interpolate<B: SparseConvBackend>(
     src: &SparseTensor<B>,
     src_stride: usize,
     dst: &SparseTensor<B>,
@@ -250,11 +254,12 @@ pub fn interpolate<B: Backend>(
         return Ok(out);
     }
     let n = trip.len();
-    let dst_idx: Vec<i64> = trip.iter().map(|t| t.0 as i64).collect();
-    let src_idx: Vec<i64> = trip.iter().map(|t| t.1 as i64).collect();
+    let dst_idx: Vec<u32> = trip.iter().map(|t| t.0 as u32).collect();
+    let src_idx: Vec<u32> = trip.iter().map(|t| t.1 as u32).collect();
     let wts: Vec<f32> = trip.iter().map(|t| t.2 as f32).collect();
-    let idx = |v: Vec<i64>| Tensor::<B, 1, Int>::from_data(TensorData::new(v, [n]), &device);
-    let rows = src.feats().clone().select(0, idx(src_idx))
+    let from_src = Arc::new(RowPlan::new(src_idx, src.num_active())?);
+    let into_dst = Arc::new(RowPlan::new(dst_idx, dst.num_active())?);
+    let rows = gather_rows(src.feats().clone(), &from_src)
         * Tensor::<B, 2>::from_data(TensorData::new(wts, [n, 1]), &device);
-    Ok(out.select_assign(0, idx(dst_idx), rows, IndexingUpdateOp::Add))
+    Ok(out + scatter_add_rows(rows, &into_dst))
 }

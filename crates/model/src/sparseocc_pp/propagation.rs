@@ -16,7 +16,6 @@
 
 use crate::error::ModelError;
 use crate::sparseocc_pp::scf_head::ScfDecomposition;
-use burn::prelude::*;
 use occ_geometry::scf::propagate_batched;
 use occ_sparse::{ops::extend_zero, Coord, SparseTensor};
 
@@ -81,7 +80,7 @@ pub fn propagated_voxels(
 
 /// Completes the anchor set: anchors ∪ propagated voxels, new voxels with zero features.
 /// Returns the completed tensor (sorted by `(b, x, y, z)`) and the number of new voxels.
-pub fn propagate_anchors<B: Backend>(
+pub fn propagate_anchors<B: occ_sparse::SparseConvBackend>(
     anchors: &SparseTensor<B>,
     s_planar: &[i32],
     s_vertical: &[i32],
