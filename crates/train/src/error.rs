@@ -31,6 +31,10 @@ pub enum TrainError {
     /// A data-parallel run failed: a collective operation, or the workers disagree.
     #[error("data-parallel training: {0}")]
     Parallel(String),
+    /// A benchmark setting the run cannot use (a grid without a synthetic preset, or one that is
+    /// not a multiple of 8 at the asked divisor).
+    #[error("{0}")]
+    Bench(String),
     /// Evaluation error.
     #[error(transparent)]
     Eval(#[from] occ_eval::EvalError),

@@ -2,8 +2,9 @@
 //!
 //! The training and inference pipeline shared by the three models: SemanticKITTI-layout data to
 //! batches ([`dataset`]), AdamW with a no-decay parameter group, warmup + cosine schedule
-//! ([`schedule`]), clipping by global norm ([`grads`]).
+//! ([`schedule`]), clipping by global norm ([`grads`]); one model's benchmark run ([`bench`](mod@bench)).
 
+pub mod bench;
 pub mod config;
 pub mod dataset;
 pub mod error;
