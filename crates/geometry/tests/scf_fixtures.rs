@@ -6,6 +6,7 @@
 use occ_geometry::scf::{
     propagate, propagation_to_dense, scf_ground_truth, scf_planar, scf_vertical, ScfConfig,
 };
+use occ_testdata::read_npy;
 use std::path::{Path, PathBuf};
 
 /// `$SPARSEOCC_FIXTURES/reference`, or `None` (skip reported) without the fixtures folder.
@@ -58,13 +59,6 @@ fn find(dir: &Path, prefix: &str) -> (PathBuf, Vec<usize>, String) {
     (dir.join(name), shape, what)
 }
 
-fn load<T: npyz::Deserialize>(path: &PathBuf) -> (Vec<T>, Vec<usize>) {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("read {}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape = npy.shape().iter().map(|&d| d as usize).collect();
-    (npy.into_vec().expect("npy data"), shape)
-}
-
 /// The "s_max N" written in a manifest description.
 fn s_max_from(what: &str) -> u32 {
     let i = what.find("s_max").expect("description names s_max");
@@ -84,12 +78,12 @@ fn dims3(shape: &[usize]) -> [usize; 3] {
 fn scf_ground_truth_matches_reference_exactly() {
     let Some(dir) = reference_dir() else { return };
     let (occ_path, _, _) = find(&dir, "scf_occupancy");
-    let (occ, shape) = load::<u8>(&occ_path);
+    let (occ, shape) = read_npy::<u8>(&occ_path);
     let dims = dims3(&shape);
     let (planar_path, _, planar_what) = find(&dir, "scf_gt_planar");
     let (vertical_path, _, vertical_what) = find(&dir, "scf_gt_vertical");
-    let (want_planar, ps) = load::<i8>(&planar_path);
-    let (want_vertical, vs) = load::<i8>(&vertical_path);
+    let (want_planar, ps) = read_npy::<i8>(&planar_path);
+    let (want_vertical, vs) = read_npy::<i8>(&vertical_path);
     assert_eq!(dims3(&ps), dims);
     assert_eq!(dims3(&vs), dims);
     let cfg = ScfConfig {
@@ -136,13 +130,13 @@ fn scf_ground_truth_matches_reference_exactly() {
 fn propagation_matches_reference_exactly() {
     let Some(dir) = reference_dir() else { return };
     let (anchor_path, _, _) = find(&dir, "prop_anchors");
-    let (flat, ashape) = load::<i32>(&anchor_path);
+    let (flat, ashape) = read_npy::<i32>(&anchor_path);
     assert_eq!(ashape.len(), 2);
     assert_eq!(ashape[1], 3);
     let anchors: Vec<[i32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    let (sp, _) = load::<i32>(&find(&dir, "prop_s_planar").0);
-    let (sv, _) = load::<i32>(&find(&dir, "prop_s_vertical").0);
-    let (want, rshape) = load::<u8>(&find(&dir, "prop_result").0);
+    let (sp, _) = read_npy::<i32>(&find(&dir, "prop_s_planar").0);
+    let (sv, _) = read_npy::<i32>(&find(&dir, "prop_s_vertical").0);
+    let (want, rshape) = read_npy::<u8>(&find(&dir, "prop_result").0);
     let dims = dims3(&rshape);
     let prop = propagate(&anchors, &sp, &sv, dims).unwrap();
     // New voxels are sorted, unique and disjoint from the anchors.

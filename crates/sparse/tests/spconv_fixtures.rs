@@ -8,9 +8,9 @@ mod common;
 use burn::backend::NdArray;
 use burn::prelude::*;
 use burn::tensor::TensorData;
-use common::read_npy;
 use occ_sparse::conv::sparse_conv3d;
 use occ_sparse::{ConvGeometry, ConvKind, Coord, SparseMaxPool3dConfig, SparseTensor};
+use occ_testdata::read_npy;
 use serde_json::Value;
 use std::path::Path;
 

@@ -25,10 +25,15 @@
 //!   returns `None`: the test returns early and counts as passed.
 //!
 //! The line is written once per test (several lookups in one test print once).
+//!
+//! Besides, small helpers the crates' tests share: [`TempDir`] (a temporary folder removed on
+//! drop), [`read_npy`] (a fixture array with its shape), [`png_claiming_size`] (a PNG whose header
+//! lies about its size).
 
 use std::collections::HashSet;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 /// Variable naming the fixtures folder.
@@ -152,9 +157,86 @@ pub fn report_skip(why: &str) {
     let _ = writeln!(std::io::stderr(), "skipped: {test}: {why}");
 }
 
+/// A fresh folder under the system temp dir, named `<prefix>-<tag>-<process id>-<counter>` (unique
+/// within the process too), created empty and removed with everything in it on drop.
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    /// Creates the folder (removing a leftover of the same name first).
+    pub fn new(prefix: &str, tag: &str) -> Self {
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let p = std::env::temp_dir().join(format!(
+            "{prefix}-{tag}-{}-{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::Relaxed)
+        ));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        TempDir(p)
+    }
+
+    /// The folder.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Reads a little-endian C-order `.npy` file as (values, shape); panics naming the file on any
+/// error.
+pub fn read_npy<T: npyz::Deserialize>(path: &Path) -> (Vec<T>, Vec<usize>) {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    let v = npy
+        .into_vec::<T>()
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    (v, shape)
+}
+
+/// A copy of the encoded PNG `png` whose header chunk (IHDR, its CRC rewritten so that it stays
+/// valid) claims `w` x `h` pixels: input for the image readers' size checks.
+pub fn png_claiming_size(png: &[u8], w: u32, h: u32) -> Vec<u8> {
+    let mut b = png.to_vec();
+    // Signature (8), IHDR length (4), "IHDR" (4), width, height at 16..24, CRC at 29..33.
+    assert!(b.len() >= 33 && &b[12..16] == b"IHDR", "not a PNG");
+    b[16..20].copy_from_slice(&w.to_be_bytes());
+    b[20..24].copy_from_slice(&h.to_be_bytes());
+    let crc = crc32(&b[12..29]);
+    b[29..33].copy_from_slice(&crc.to_be_bytes());
+    b
+}
+
+/// CRC-32 (ISO-HDLC, as PNG chunks use it).
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn crc32_of_the_check_string() {
+        // The standard check value of CRC-32/ISO-HDLC.
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
 
     // The environment is shared by the tests of this binary: only this one test touches it.
     #[test]

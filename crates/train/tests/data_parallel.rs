@@ -6,18 +6,16 @@
 //!
 //! The collective of a backend is one per process, so these tests take turns (`SERIAL`).
 
-mod common;
-
 use burn::backend::{Autodiff, NdArray};
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::optim::GradientsParams;
 use burn::prelude::*;
 use burn::tensor::activation::log_softmax;
-use common::TempDir;
 use occ_data::synthetic::{generate, Preset, SynthConfig};
 use occ_model::loss::LossKey;
 use occ_model::{Batch, ModelError, ModelOutput, OccNetwork};
+use occ_testdata::TempDir;
 use occ_train::dataset::{collate, Dataset};
 use occ_train::trainer::{train, TrainSummary};
 use occ_train::{RunConfig, TrainError};
@@ -187,7 +185,7 @@ where
 #[test]
 fn two_workers_of_one_frame_equal_one_worker_of_two() {
     let _g = serial();
-    let t = TempDir::new("dp_equal");
+    let t = TempDir::new("occ_train", "dp_equal");
     let (mut cfg, ds) = data(&t.0.join("data"), 4);
     cfg.train.steps = 3;
     let init = frame_net();
@@ -215,7 +213,7 @@ fn two_workers_of_one_frame_equal_one_worker_of_two() {
 #[test]
 fn a_resumed_data_parallel_run_equals_an_uninterrupted_one() {
     let _g = serial();
-    let t = TempDir::new("dp_resume");
+    let t = TempDir::new("occ_train", "dp_resume");
     let (mut cfg, ds) = data(&t.0.join("data"), 4);
     cfg.train.devices = 2;
     cfg.train.steps = 4;
@@ -243,7 +241,7 @@ fn a_resumed_data_parallel_run_equals_an_uninterrupted_one() {
 #[test]
 fn sparseocc_pp_trains_on_two_workers() {
     let _g = serial();
-    let t = TempDir::new("dp_real");
+    let t = TempDir::new("occ_train", "dp_real");
     let (mut cfg, ds) = data(&t.0.join("data"), 2);
     cfg.train.steps = 2;
     let device = Default::default();
@@ -293,7 +291,7 @@ fn sparseocc_pp_trains_on_two_workers() {
 #[test]
 fn a_failing_worker_stops_the_others_with_its_error() {
     let _g = serial();
-    let t = TempDir::new("dp_fail");
+    let t = TempDir::new("occ_train", "dp_fail");
     let root = t.0.join("data");
     let (mut cfg, ds) = data(&root, 2);
     cfg.train.devices = 2;
@@ -313,7 +311,7 @@ fn a_failing_worker_stops_the_others_with_its_error() {
 #[test]
 fn devices_must_divide_the_batch() {
     let _g = serial();
-    let t = TempDir::new("dp_config");
+    let t = TempDir::new("occ_train", "dp_config");
     let (mut cfg, ds) = data(&t.0.join("data"), 2);
     cfg.train.devices = 3;
     let err = run(frame_net(), &cfg, &ds, &t.0.join("run"), false).unwrap_err();

@@ -17,8 +17,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::Path;
 
-mod common;
-use common::TempDir;
+use occ_testdata::TempDir;
 
 /// Training ids (SemanticKITTI learning map) of the ground classes and their synthetic scene class.
 const GROUND: [(u8, usize); 5] = [(9, 9), (10, 10), (11, 11), (12, 12), (17, 17)];
@@ -101,7 +100,7 @@ fn agreement(s: &Sample, grid: &VoxelGrid, shift_y: f64) -> (usize, f64) {
 
 #[test]
 fn ground_voxels_project_onto_pixels_of_their_class() {
-    let t = TempDir::new("ground");
+    let t = TempDir::new("occ_train", "ground");
     let cfg_s = SynthConfig::new(Preset::KittiSmall, 5, vec![("00".into(), 2)]);
     generate(&t.0, &cfg_s, &mut |_, _| {}).unwrap();
     // Score only what this frame's own rays saw: `.invalid` also counts the scans of the drive on

@@ -12,8 +12,7 @@ use occ_train::dataset::{collate, occ3d_training_labels, Dataset, DatasetFormat}
 use occ_train::RunConfig;
 use std::path::Path;
 
-mod common;
-use common::TempDir;
+use occ_testdata::TempDir;
 
 const W: usize = 176;
 const H: usize = 64;
@@ -54,7 +53,7 @@ fn close(a: &Mat4, b: &Mat4) -> bool {
 
 #[test]
 fn occ3d_frames_cameras_targets_points_and_scoring() {
-    let t = TempDir::new("occ3d");
+    let t = TempDir::new("occ_train", "occ3d");
     synth(&t.0);
     let cfg = config(DatasetFormat::Occ3d, 18, [200, 200, 16]);
     let tables = NuscenesTables::load(&t.0.join("v1.0-trainval")).unwrap();
@@ -160,7 +159,7 @@ fn occ3d_frames_cameras_targets_points_and_scoring() {
 
 #[test]
 fn nuscenes_occupancy_frames_use_the_lidar_frame() {
-    let t = TempDir::new("nocc");
+    let t = TempDir::new("occ_train", "nocc");
     synth(&t.0);
     let tables = NuscenesTables::load(&t.0.join("v1.0-trainval")).unwrap();
     let meta = read_synthetic_meta(&t.0).unwrap().unwrap();

@@ -98,14 +98,3 @@ pub fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
         .map(|(x, y)| (x - y).abs())
         .fold(0.0, f64::max)
 }
-
-/// Reads a little-endian C-order .npy file as (values, shape).
-pub fn read_npy<T: npyz::Deserialize>(path: &std::path::Path) -> (Vec<T>, Vec<usize>) {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
-    let v = npy
-        .into_vec::<T>()
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    (v, shape)
-}
