@@ -54,6 +54,13 @@ fn leftovers(dir: &Path, keep: &str) -> Vec<String> {
         .collect()
 }
 
+/// `dir/out.json` holds one complete document and nothing else is left in `dir`.
+fn assert_complete_and_alone(dir: &Path) {
+    check(&std::fs::read(dir.join("out.json")).unwrap()).unwrap();
+    let left = leftovers(dir, "out.json");
+    assert!(left.is_empty(), "{left:?}");
+}
+
 #[test]
 fn temporary_names_are_unique() {
     let p = Path::new("/some/dir/out.json");
@@ -92,12 +99,7 @@ fn concurrent_threads_leave_a_complete_file() {
             }
         });
     });
-    check(&std::fs::read(&path).unwrap()).unwrap();
-    assert!(
-        leftovers(&dir, "out.json").is_empty(),
-        "{:?}",
-        leftovers(&dir, "out.json")
-    );
+    assert_complete_and_alone(&dir);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -145,12 +147,7 @@ fn two_processes_leave_a_complete_file() {
         for mut c in children {
             assert!(c.wait().unwrap().success());
         }
-        check(&std::fs::read(&path).unwrap()).unwrap();
-        assert!(
-            leftovers(&dir, "out.json").is_empty(),
-            "{:?}",
-            leftovers(&dir, "out.json")
-        );
+        assert_complete_and_alone(&dir);
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -73,22 +73,6 @@ fn image_kind_is_read_from_the_content_not_the_name() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// CRC-32 (PNG chunks).
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = 0xFFFF_FFFFu32;
-    for &b in bytes {
-        c ^= b as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
-
 /// A valid small PNG whose IHDR (with a correct CRC) claims `w` x `h` pixels.
 fn png_claiming(w: u32, h: u32) -> Vec<u8> {
     let img = RgbImage {
@@ -96,13 +80,7 @@ fn png_claiming(w: u32, h: u32) -> Vec<u8> {
         height: 4,
         data: vec![7; 48],
     };
-    let mut b = occ_data::image::encode_png(&img).unwrap();
-    // Signature (8), IHDR length (4), "IHDR" (4), width, height at 16..24, CRC at 29..33.
-    b[16..20].copy_from_slice(&w.to_be_bytes());
-    b[20..24].copy_from_slice(&h.to_be_bytes());
-    let crc = crc32(&b[12..29]);
-    b[29..33].copy_from_slice(&crc.to_be_bytes());
-    b
+    occ_testdata::png_claiming_size(&occ_data::image::encode_png(&img).unwrap(), w, h)
 }
 
 /// The 48x32 JPEG fixture with its frame header patched to claim `w` x `h` pixels.

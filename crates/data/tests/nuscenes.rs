@@ -3,18 +3,18 @@
 
 mod common;
 
-use common::TempDir;
 use occ_data::formats::npy::write_npy;
 use occ_data::formats::nuscenes_occupancy::*;
 use occ_data::DataError;
 use occ_geometry::{transform_point, VoxelGrid};
+use occ_testdata::TempDir;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 
 #[test]
 fn sparse_occupancy_to_dense_grid() {
-    let tmp = TempDir::new("nuocc");
+    let tmp = TempDir::new("occ-data-test", "nuocc");
     let p = tmp.path().join("lidar_token.npy");
     // rows [z, y, x, cls]: a car voxel, a noise voxel, a voxel listed twice with a vote
     let rows: Vec<i64> = vec![
@@ -193,7 +193,7 @@ fn write_scene(dir: &std::path::Path, rng: &mut ChaCha8Rng) -> Scene {
 
 #[test]
 fn camera_tables_give_lidar_to_camera_projections() {
-    let tmp = TempDir::new("nusc");
+    let tmp = TempDir::new("occ-data-test", "nusc");
     let dir = tmp.path().join("v1.0-mini");
     let mut rng = ChaCha8Rng::seed_from_u64(33);
     let scene = write_scene(&dir, &mut rng);
@@ -287,7 +287,7 @@ fn camera_tables_give_lidar_to_camera_projections() {
 
 #[test]
 fn camera_table_errors_name_the_file() {
-    let tmp = TempDir::new("nusc-bad");
+    let tmp = TempDir::new("occ-data-test", "nusc-bad");
     let dir = tmp.path().join("v1.0-mini");
     let mut rng = ChaCha8Rng::seed_from_u64(34);
     write_scene(&dir, &mut rng);

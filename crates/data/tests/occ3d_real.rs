@@ -3,9 +3,9 @@
 
 mod common;
 
-use common::TempDir;
 use occ_data::formats::occ3d::*;
 use occ_data::DataError;
+use occ_testdata::TempDir;
 use std::io::Read;
 use std::path::PathBuf;
 
@@ -75,7 +75,7 @@ fn real_samples_read_and_round_trip() {
             }
         }
         // round trip
-        let tmp = TempDir::new("occ3d");
+        let tmp = TempDir::new("occ-data-test", "occ3d");
         let out = tmp.path().join("labels.npz");
         write_labels_npz(&out, &l).unwrap();
         assert_eq!(read_labels_npz(&out).unwrap(), l);
@@ -102,7 +102,7 @@ fn real_samples_read_and_round_trip() {
 #[test]
 fn bad_npz_inputs() {
     let Some(samples) = samples() else { return };
-    let tmp = TempDir::new("occ3d-bad");
+    let tmp = TempDir::new("occ-data-test", "occ3d-bad");
     let d = tmp.path();
     let real = std::fs::read(&samples[0]).unwrap();
     let p = d.join("labels.npz");

@@ -3,9 +3,10 @@
 
 mod common;
 
-use common::{kitti_root, TempDir};
+use common::kitti_root;
 use occ_data::formats::semantic_kitti::*;
 use occ_data::prepare::{prepare_semantic_kitti, PrepareOptions};
+use occ_testdata::TempDir;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -63,7 +64,7 @@ fn check_only_report_on_real_data() {
 
 #[test]
 fn writes_preprocessed_labels() {
-    let tmp = TempDir::new("prepare");
+    let tmp = TempDir::new("occ-data-test", "prepare");
     let root = tmp.path();
     let p = KittiPaths::new(root);
     let mut rng = ChaCha8Rng::seed_from_u64(77);
@@ -176,7 +177,7 @@ fn writes_preprocessed_labels() {
 #[test]
 fn synthetic_grids_prepare_and_check_catches_wrong_sizes() {
     use occ_data::synthetic::{generate, Preset, SynthConfig};
-    let tmp = TempDir::new("prepare-synth");
+    let tmp = TempDir::new("occ-data-test", "prepare-synth");
     let root = tmp.path();
     let cfg = SynthConfig::new(Preset::KittiSmall, 3, vec![("00".to_string(), 2)]);
     generate(root, &cfg, &mut |_, _| {}).unwrap();

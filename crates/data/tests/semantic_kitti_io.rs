@@ -2,10 +2,11 @@
 
 mod common;
 
-use common::{kitti_root, TempDir};
+use common::kitti_root;
 use occ_data::formats::semantic_kitti::*;
 use occ_data::image::read_png;
 use occ_data::DataError;
+use occ_testdata::TempDir;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -21,7 +22,7 @@ fn random_classes(rng: &mut ChaCha8Rng, n: usize) -> Vec<u8> {
 
 #[test]
 fn round_trips_of_every_format() {
-    let tmp = TempDir::new("kitti-rt");
+    let tmp = TempDir::new("occ-data-test", "kitti-rt");
     let d = tmp.path();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let map = LearningMap::semantic_kitti();
@@ -134,7 +135,7 @@ fn msg(e: &DataError) -> String {
 
 #[test]
 fn bad_inputs_give_errors_naming_the_file() {
-    let tmp = TempDir::new("kitti-bad");
+    let tmp = TempDir::new("occ-data-test", "kitti-bad");
     let d = tmp.path();
     let Some(root) = kitti_root() else { return };
     let p = KittiPaths::new(&root);

@@ -65,7 +65,7 @@ fn packed_voxel_files_sizes_and_bit_invariants() {
             .count();
         assert!(z0 * 100 < n_bin, "{z0} occupied voxels in layer z=0");
         // the writer round-trips the real file byte for byte
-        let tmp = common::TempDir::new("packed");
+        let tmp = occ_testdata::TempDir::new("occ-data-test", "packed");
         let out = tmp.path().join("x.bin");
         write_packed_bits(&out, &bin).unwrap();
         assert_eq!(

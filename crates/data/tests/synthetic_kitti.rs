@@ -1,5 +1,8 @@
 //! The synthetic SemanticKITTI-layout generator, checked through the real-format readers.
 
+mod common;
+
+use common::traverse;
 use occ_data::formats::semantic_kitti::{
     list_frames, read_calib, read_label_raw, read_packed_bits, read_point_labels, read_poses,
     read_velodyne, LearningMap,
@@ -8,21 +11,8 @@ use occ_data::image::read_png;
 use occ_data::synthetic::classes::{kitti_learning_class, nearest_class_by_chroma};
 use occ_data::synthetic::{generate, read_synthetic_meta, Preset, SynthConfig, SynthMeta};
 use occ_geometry::{mat4_inverse, mat4_mul, transform_point, Mat4, VoxelGrid};
+use occ_testdata::TempDir;
 use std::path::{Path, PathBuf};
-
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let p = std::env::temp_dir().join(format!("sparseocc-synth-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&p);
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 fn small_cfg(seed: u64, frames: usize, image: (usize, usize)) -> SynthConfig {
     SynthConfig {
@@ -52,9 +42,9 @@ fn all_files(root: &Path) -> Vec<PathBuf> {
 
 #[test]
 fn same_seed_gives_identical_files_and_progress_is_reported() {
-    let a = TempDir::new("det-a");
-    let b = TempDir::new("det-b");
-    let c = TempDir::new("det-c");
+    let a = TempDir::new("sparseocc-synth", "det-a");
+    let b = TempDir::new("sparseocc-synth", "det-b");
+    let c = TempDir::new("sparseocc-synth", "det-c");
     let cfg = small_cfg(11, 2, (96, 32));
     let mut calls = Vec::new();
     let s = generate(&a.0, &cfg, &mut |d, t| calls.push((d, t))).unwrap();
@@ -156,7 +146,7 @@ fn read_seq(root: &Path, seq: &str) -> Seq {
 
 #[test]
 fn files_read_back_and_are_mutually_consistent() {
-    let t = TempDir::new("consistency");
+    let t = TempDir::new("sparseocc-synth", "consistency");
     let summary = generate(&t.0, &small_cfg(3, 4, (160, 48)), &mut |_, _| {}).unwrap();
     let s = read_seq(&t.0, "00");
     assert_eq!(s.grid.dims, [128, 128, 16]);
@@ -235,7 +225,7 @@ fn files_read_back_and_are_mutually_consistent() {
 #[test]
 fn every_semantic_class_occurs_in_a_sequence() {
     for seed in [1u64, 2, 3] {
-        let t = TempDir::new(&format!("classes-{seed}"));
+        let t = TempDir::new("sparseocc-synth", &format!("classes-{seed}"));
         generate(&t.0, &small_cfg(seed, 2, (32, 16)), &mut |_, _| {}).unwrap();
         let s = read_seq(&t.0, "00");
         let mut count = [0u64; 256];
@@ -251,60 +241,6 @@ fn every_semantic_class_occurs_in_a_sequence() {
                 &count[..20]
             );
         }
-    }
-}
-
-/// Exact voxel traversal (Amanatides & Woo) of the ray `o + t·d` (unit `d`, `o` inside the grid)
-/// through the label grid: the voxels visited in order, up to and including the first occupied
-/// one (returned separately), or until the ray leaves the grid or passes `t_max`.
-fn traverse(
-    grid: &VoxelGrid,
-    labels: &[u8],
-    o: [f64; 3],
-    d: [f64; 3],
-    t_max: f64,
-) -> (Vec<usize>, Option<usize>) {
-    let mut visited = Vec::new();
-    let Some(mut ijk) = grid.voxel_of_point_m(o) else {
-        return (visited, None);
-    };
-    let s = grid.voxel_size_m;
-    let mut t_next = [f64::INFINITY; 3];
-    let mut t_delta = [f64::INFINITY; 3];
-    for a in 0..3 {
-        let lo = grid.origin_m[a] + ijk[a] as f64 * s;
-        if d[a] > 0.0 {
-            t_next[a] = (lo + s - o[a]) / d[a];
-            t_delta[a] = s / d[a];
-        } else if d[a] < 0.0 {
-            t_next[a] = (lo - o[a]) / d[a];
-            t_delta[a] = -s / d[a];
-        }
-    }
-    loop {
-        let i = grid.linear_index(ijk);
-        visited.push(i);
-        if labels[i] != 0 {
-            return (visited, Some(i));
-        }
-        let a = (0..3)
-            .min_by(|&x, &y| t_next[x].partial_cmp(&t_next[y]).unwrap())
-            .unwrap();
-        if t_next[a] > t_max {
-            return (visited, None);
-        }
-        if d[a] > 0.0 {
-            ijk[a] += 1;
-            if ijk[a] >= grid.dims[a] {
-                return (visited, None);
-            }
-        } else {
-            if ijk[a] == 0 {
-                return (visited, None);
-            }
-            ijk[a] -= 1;
-        }
-        t_next[a] += t_delta[a];
     }
 }
 
@@ -336,7 +272,7 @@ fn rendered_pixels_show_the_class_of_the_visible_voxel() {
     //   strict: the pixel's own ray meets the voxel first (the pixel really shows this voxel);
     //   all:    every visible voxel (for ground voxels the centre pixel usually shows a nearer
     //           ground voxel, which may belong to another class at borders).
-    let t = TempDir::new("appearance");
+    let t = TempDir::new("sparseocc-synth", "appearance");
     let (w, h) = (306, 92);
     generate(&t.0, &small_cfg(5, 2, (w, h)), &mut |_, _| {}).unwrap();
     let s = read_seq(&t.0, "00");
@@ -355,7 +291,7 @@ fn rendered_pixels_show_the_class_of_the_visible_voxel() {
         for v in 0..h {
             for u in 0..w {
                 let (o, d) = pixel_ray(&lidar_from_cam, &view.camera, u, v);
-                let hit = traverse(&s.grid, labels, o, d, 200.0).1;
+                let hit = traverse(&s.grid, &|i| labels[i] != 0, o, d, 200.0).1;
                 if let Some(i) = hit {
                     visible[i] = true;
                 }
@@ -408,7 +344,7 @@ fn rendered_pixels_show_the_class_of_the_visible_voxel() {
 
 #[test]
 fn invalid_never_marks_a_visible_voxel() {
-    let t = TempDir::new("invalid");
+    let t = TempDir::new("sparseocc-synth", "invalid");
     let (w, h) = (160, 48);
     generate(&t.0, &small_cfg(8, 4, (w, h)), &mut |_, _| {}).unwrap();
     let s = read_seq(&t.0, "00");
@@ -439,7 +375,7 @@ fn invalid_never_marks_a_visible_voxel() {
         for v in 0..h {
             for u in 0..w {
                 let (o, d) = pixel_ray(&lidar_from_cam, &view.camera, u, v);
-                for i in traverse(&s.grid, &s.labels[fi], o, d, 120.0).0 {
+                for i in traverse(&s.grid, &|i| s.labels[fi][i] != 0, o, d, 120.0).0 {
                     assert_eq!(
                         s.invalid[fi][i],
                         0,
@@ -462,7 +398,7 @@ fn invalid_never_marks_a_visible_voxel() {
 
 #[test]
 fn missing_meta_is_none_and_bad_meta_is_an_error() {
-    let t = TempDir::new("meta");
+    let t = TempDir::new("sparseocc-synth", "meta");
     std::fs::create_dir_all(&t.0).unwrap();
     assert!(read_synthetic_meta(&t.0).unwrap().is_none());
     std::fs::write(t.0.join("synthetic.json"), b"{not json").unwrap();

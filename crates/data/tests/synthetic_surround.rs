@@ -1,81 +1,15 @@
 //! The synthetic Occ3D-nuScenes-layout generator (`surround`), checked through the real readers.
 
+mod common;
+
+use common::traverse;
 use occ_data::formats::nuscenes_occupancy::{NuscenesTables, CAMERA_CHANNELS};
 use occ_data::formats::occ3d::{read_labels_npz, FREE};
 use occ_data::image::read_png;
 use occ_data::synthetic::classes::{nearest_class_by_chroma, nuscenes_class};
 use occ_data::synthetic::{generate, read_synthetic_meta, Preset, SynthConfig, NUSCENES_VERSION};
 use occ_geometry::{mat4_inverse, transform_point, Mat4, PinholeCamera, VoxelGrid};
-use std::path::PathBuf;
-
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let p = std::env::temp_dir().join(format!("sparseocc-synth-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&p);
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-/// Exact voxel traversal of `o + t·d` through `occupied` (see synthetic_kitti.rs): visited
-/// voxels up to and including the first occupied one.
-fn traverse(
-    grid: &VoxelGrid,
-    occupied: &dyn Fn(usize) -> bool,
-    o: [f64; 3],
-    d: [f64; 3],
-) -> (Vec<usize>, Option<usize>) {
-    let mut visited = Vec::new();
-    let mut t = 0.0;
-    // enter the grid if the origin is outside (cameras are inside the Occ3D volume)
-    let Some(mut ijk) = grid.voxel_of_point_m(o) else {
-        return (visited, None);
-    };
-    let s = grid.voxel_size_m;
-    let mut t_next = [f64::INFINITY; 3];
-    let mut t_delta = [f64::INFINITY; 3];
-    for a in 0..3 {
-        let lo = grid.origin_m[a] + ijk[a] as f64 * s;
-        if d[a] > 0.0 {
-            t_next[a] = (lo + s - o[a]) / d[a];
-            t_delta[a] = s / d[a];
-        } else if d[a] < 0.0 {
-            t_next[a] = (lo - o[a]) / d[a];
-            t_delta[a] = -s / d[a];
-        }
-    }
-    loop {
-        let i = grid.linear_index(ijk);
-        visited.push(i);
-        if occupied(i) {
-            return (visited, Some(i));
-        }
-        let a = (0..3)
-            .min_by(|&x, &y| t_next[x].partial_cmp(&t_next[y]).unwrap())
-            .unwrap();
-        t = t_next[a].max(t);
-        if t > 150.0 {
-            return (visited, None);
-        }
-        if d[a] > 0.0 {
-            ijk[a] += 1;
-            if ijk[a] >= grid.dims[a] {
-                return (visited, None);
-            }
-        } else {
-            if ijk[a] == 0 {
-                return (visited, None);
-            }
-            ijk[a] -= 1;
-        }
-        t_next[a] += t_delta[a];
-    }
-}
+use occ_testdata::TempDir;
 
 fn pixel_ray(ego_from_cam: &Mat4, cam: &PinholeCamera, u: usize, v: usize) -> ([f64; 3], [f64; 3]) {
     let o = transform_point(ego_from_cam, [0.0, 0.0, 0.0]);
@@ -92,9 +26,23 @@ fn pixel_ray(ego_from_cam: &Mat4, cam: &PinholeCamera, u: usize, v: usize) -> ([
     (o, dv.map(|x| x / n))
 }
 
+/// How many entries of `dir` have names starting with `prefix`.
+fn files_starting_with(dir: &std::path::Path, prefix: &str) -> usize {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with(prefix)
+        })
+        .count()
+}
+
 #[test]
 fn surround_scene_reads_back_and_is_consistent() {
-    let t = TempDir::new("surround");
+    let t = TempDir::new("sparseocc-synth", "surround");
     let (w, h) = (176, 64);
     let cfg = SynthConfig {
         preset: Preset::Surround,
@@ -167,7 +115,7 @@ fn surround_scene_reads_back_and_is_consistent() {
             for v in 0..h {
                 for u in 0..w {
                     let (o, d) = pixel_ray(&ego_from_cam, &k, u, v);
-                    let (visited, hit) = traverse(&grid, &occupied, o, d);
+                    let (visited, hit) = traverse(&grid, &occupied, o, d, 150.0);
                     for i in visited {
                         assert_eq!(
                             labels.mask_camera[i],
@@ -215,7 +163,7 @@ fn surround_scene_reads_back_and_is_consistent() {
 
 #[test]
 fn rerun_replaces_previous_output_and_foreign_data_is_protected() {
-    let t = TempDir::new("rerun");
+    let t = TempDir::new("sparseocc-synth", "rerun");
     let mut cfg = SynthConfig {
         preset: Preset::Surround,
         seed: 1,
@@ -226,21 +174,14 @@ fn rerun_replaces_previous_output_and_foreign_data_is_protected() {
     cfg.sequences = vec![("b".into(), 1)];
     generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
     assert!(!t.0.join("gts/scene-a").exists());
-    let stale = std::fs::read_dir(t.0.join("samples/CAM_FRONT"))
-        .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .starts_with("scene-a__")
-        })
-        .count();
-    assert_eq!(stale, 0);
+    assert_eq!(
+        files_starting_with(&t.0.join("samples/CAM_FRONT"), "scene-a__"),
+        0
+    );
     let tables = NuscenesTables::load(&t.0.join(NUSCENES_VERSION)).unwrap();
     assert_eq!(tables.sample_tokens().len(), 1);
     // a folder that holds a dataset without synthetic.json is never overwritten
-    let foreign = TempDir::new("foreign");
+    let foreign = TempDir::new("sparseocc-synth", "foreign");
     std::fs::create_dir_all(foreign.0.join("sequences/00")).unwrap();
     std::fs::write(foreign.0.join("sequences/00/calib.txt"), b"x").unwrap();
     let k = SynthConfig {
@@ -264,7 +205,7 @@ fn scene_names_are_prefixed_once_and_rerun_cleans_prefixed_scenes() {
         occ_data::synthetic::scene_name_of("scene-0001"),
         "scene-0001"
     );
-    let t = TempDir::new("prefix");
+    let t = TempDir::new("sparseocc-synth", "prefix");
     let mut cfg = SynthConfig {
         preset: Preset::Surround,
         seed: 2,
@@ -278,18 +219,7 @@ fn scene_names_are_prefixed_once_and_rerun_cleans_prefixed_scenes() {
     assert_eq!(names, ["scene-0001", "scene-0002"]);
     assert!(t.0.join("gts/scene-0001").is_dir());
     assert!(!t.0.join("gts/scene-scene-0001").exists());
-    let prefixed = |dir: &str, prefix: &str| {
-        std::fs::read_dir(t.0.join(dir))
-            .unwrap()
-            .filter(|e| {
-                e.as_ref()
-                    .unwrap()
-                    .file_name()
-                    .to_string_lossy()
-                    .starts_with(prefix)
-            })
-            .count()
-    };
+    let prefixed = |dir: &str, prefix: &str| files_starting_with(&t.0.join(dir), prefix);
     assert_eq!(prefixed("samples/CAM_FRONT", "scene-0001__"), 1);
     assert_eq!(prefixed("samples/CAM_FRONT", "scene-scene-"), 0);
     // A rerun without the prefixed sequence removes its files (found under the same name).
