@@ -2,6 +2,9 @@
 //! on the real samples in `$SPARSEOCC_REALDATA` (an external folder found by `occ_testdata`; the
 //! tests that need it print a skip line without it).
 
+mod common;
+
+use common::{counting_frames, with_sequences};
 use occ_data::formats::npy::npy_bytes;
 use occ_data::formats::occ3d::{read_labels_npz, write_labels_npz, Occ3dLabels};
 use occ_data::formats::semantic_kitti::{
@@ -12,32 +15,11 @@ use occ_eval::{
     score_occ3d_folder, score_semantic_kitti_folder, EvalError, EvalMask, Evaluator, FolderOptions,
     Occ3dMask, Protocol,
 };
+use occ_testdata::TempDir;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::io::Write;
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-
-/// A fresh temporary folder, removed on drop.
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        static N: AtomicUsize = AtomicUsize::new(0);
-        let p = std::env::temp_dir().join(format!(
-            "occ-eval-{tag}-{}-{}",
-            std::process::id(),
-            N.fetch_add(1, Ordering::Relaxed)
-        ));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+use std::path::Path;
 
 /// Real `.invalid` masks of the sample (sequence, frame, unpacked mask), found by listing; `None`
 /// (skip reported) without the real-data folder.
@@ -108,8 +90,8 @@ fn semantic_kitti_folder_end_to_end() {
     };
     let map = LearningMap::semantic_kitti();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let gt_dir = TempDir::new("kitti-gt");
-    let pred_dir = TempDir::new("kitti-pred");
+    let gt_dir = TempDir::new("occ-eval", "kitti-gt");
+    let pred_dir = TempDir::new("occ-eval", "kitti-pred");
     let gt_paths = KittiPaths::new(&gt_dir.0);
     // Frames: the real sample's (sequence, frame) ids and invalid masks, plus synthetic labels.
     let mut expected_all = Evaluator::new(Protocol::SemanticKitti);
@@ -165,18 +147,12 @@ fn semantic_kitti_folder_end_to_end() {
     )
     .unwrap();
 
-    let counter = AtomicUsize::new(0);
-    let on_frame = || {
-        counter.fetch_add(1, Ordering::Relaxed);
-    };
-    let opts = FolderOptions {
-        on_frame: Some(&on_frame),
-        ..Default::default()
-    };
-    let report = score_semantic_kitti_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap();
+    let (report, counted) =
+        counting_frames(|opts| score_semantic_kitti_folder(&gt_dir.0, &pred_dir.0, opts));
+    let report = report.unwrap();
     assert_eq!(report, expected_all.report());
     assert_eq!(report.frames as usize, masks.len());
-    assert_eq!(counter.load(Ordering::Relaxed), masks.len());
+    assert_eq!(counted, masks.len());
     assert_eq!(
         report.invalid_predictions,
         expected_all.report().invalid_predictions
@@ -199,12 +175,10 @@ fn semantic_kitti_folder_end_to_end() {
         let r = score_semantic_kitti_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap();
         assert_eq!(r, ev.report(), "sequence {seq}");
     }
-    let nosuch = vec!["42".to_string()];
-    let opts = FolderOptions {
-        sequences: Some(&nosuch),
-        ..Default::default()
-    };
-    let e = score_semantic_kitti_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap_err();
+    let e = with_sequences(&["42"], |opts| {
+        score_semantic_kitti_folder(&gt_dir.0, &pred_dir.0, opts)
+    })
+    .unwrap_err();
     assert!(e.to_string().contains("42"), "{e}");
 
     // A truncated prediction is an error naming the file.
@@ -236,7 +210,7 @@ fn semantic_kitti_folder_end_to_end() {
     }
 
     // An empty ground-truth folder has no frames.
-    let empty = TempDir::new("kitti-empty");
+    let empty = TempDir::new("occ-eval", "kitti-empty");
     std::fs::create_dir_all(empty.0.join("sequences/08")).unwrap();
     assert!(matches!(
         score_semantic_kitti_folder(&empty.0, &pred_dir.0, &FolderOptions::default()),
@@ -258,8 +232,8 @@ fn occ3d_folder_end_to_end() {
     let mut rng = ChaCha8Rng::seed_from_u64(33);
     let dims = [200usize, 200, 16];
     let n = dims.iter().product::<usize>();
-    let gt_dir = TempDir::new("occ3d-gt");
-    let pred_dir = TempDir::new("occ3d-pred");
+    let gt_dir = TempDir::new("occ-eval", "occ3d-gt");
+    let pred_dir = TempDir::new("occ-eval", "occ3d-pred");
     let mut expected = Evaluator::new(Protocol::Occ3d);
     let mut expected_lidar = Evaluator::new(Protocol::Occ3d);
     let frames = [
@@ -476,8 +450,8 @@ fn real_occ3d_sample_scored_against_itself() {
 fn occ3d_sequences_and_ground_truth_shape() {
     let dims = [200usize, 200, 16];
     let n = dims.iter().product::<usize>();
-    let gt_dir = TempDir::new("occ3d-seq-gt");
-    let pred_dir = TempDir::new("occ3d-seq-pred");
+    let gt_dir = TempDir::new("occ-eval", "occ3d-seq-gt");
+    let pred_dir = TempDir::new("occ-eval", "occ3d-seq-pred");
     let write = |root: &Path, scene: &str, token: &str, dims: [usize; 3], v: u8| {
         let n: usize = dims.iter().product();
         let l = Occ3dLabels {

@@ -2,33 +2,15 @@
 //! `write_sparse_occupancy`, checked against a hand computation of docs/evaluation.md §3
 //! (`iou = tp/(p+g-tp)`, mIoU over classes 1..=16, SC IoU on `label != 0`, GT 255 ignored).
 
+mod common;
+
+use common::{counting_frames, with_sequences};
 use occ_data::formats::nuscenes_occupancy::{write_sparse_occupancy, DIMS};
 use occ_eval::{score_nuscenes_occupancy_folder, EvalError, FolderOptions, Protocol};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use occ_testdata::TempDir;
+use std::path::Path;
 
 const N: usize = DIMS[0] * DIMS[1] * DIMS[2];
-
-/// A fresh temporary folder, removed on drop.
-struct TempDir(PathBuf);
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        static K: AtomicUsize = AtomicUsize::new(0);
-        let p = std::env::temp_dir().join(format!(
-            "occ-eval-nuscocc-{tag}-{}-{}",
-            std::process::id(),
-            K.fetch_add(1, Ordering::Relaxed)
-        ));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
-    }
-}
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 /// Flat index of voxel `(x, y, z)` of the dense `[x][y][z]` grid.
 fn idx(x: usize, y: usize, z: usize) -> usize {
@@ -62,8 +44,8 @@ const NOISE: u8 = 255;
 
 #[test]
 fn nuscenes_occupancy_folder_matches_hand_computation() {
-    let gt_dir = TempDir::new("gt");
-    let pred_dir = TempDir::new("pred");
+    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt");
+    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred");
     // The ground truth sits below `GT/nuScenes-Occupancy/`, as in the OpenOccupancy download.
     let gt_base = gt_dir.0.join("nuScenes-Occupancy");
 
@@ -104,15 +86,9 @@ fn nuscenes_occupancy_folder_matches_hand_computation() {
     write_frame(&gt_base, "s2", "lidar_b", &grid(&gt_b_vox));
     write_frame(&pred_dir.0, "s2", "lidar_b", &grid(&pred_b_vox));
 
-    let frames_seen = AtomicUsize::new(0);
-    let tick = || {
-        frames_seen.fetch_add(1, Ordering::Relaxed);
-    };
-    let opts = FolderOptions {
-        on_frame: Some(&tick),
-        ..Default::default()
-    };
-    let r = score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap();
+    let (r, frames_seen) =
+        counting_frames(|opts| score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, opts));
+    let r = r.unwrap();
 
     // Confusion conf[pred][gt] (non-empty-empty cells):
     //   car/car 2+1 (a1, a2, f4), car/veg 1 (b1), veg/veg 1+1 (b2, f16), car/empty 1 (e1),
@@ -120,7 +96,7 @@ fn nuscenes_occupancy_folder_matches_hand_computation() {
     //   c/c 1 for the other 13 classes.
     assert_eq!(r.dataset, Protocol::NuScenesOccupancy);
     assert_eq!(r.frames, 2);
-    assert_eq!(frames_seen.load(Ordering::Relaxed), 2);
+    assert_eq!(frames_seen, 2);
     assert_eq!(
         r.evaluated_voxels,
         2 * N as u64 - 1,
@@ -161,8 +137,8 @@ fn nuscenes_occupancy_folder_matches_hand_computation() {
 
 #[test]
 fn nuscenes_occupancy_missing_prediction_is_an_error() {
-    let gt_dir = TempDir::new("gt-missing");
-    let pred_dir = TempDir::new("pred-missing");
+    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-missing");
+    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-missing");
     let g = grid(&[(idx(1, 2, 3), CAR)]);
     write_frame(&gt_dir.0, "s1", "lidar_a", &g);
     write_frame(&gt_dir.0, "s1", "lidar_b", &g);
@@ -196,7 +172,7 @@ fn nuscenes_occupancy_missing_prediction_is_an_error() {
     }
 
     // An empty ground-truth folder has no frames.
-    let empty = TempDir::new("gt-empty");
+    let empty = TempDir::new("occ-eval-nuscocc", "gt-empty");
     let err = score_nuscenes_occupancy_folder(&empty.0, &pred_dir.0, &FolderOptions::default())
         .unwrap_err();
     assert!(matches!(err, EvalError::NoFrames { .. }), "{err}");
@@ -207,8 +183,8 @@ fn nuscenes_occupancy_noise_is_ignored_in_gt_and_invalid_in_prediction() {
     let (a, n, e) = (idx(5, 5, 5), idx(6, 6, 6), idx(7, 7, 7));
     let gt = grid(&[(a, CAR), (n, NOISE)]);
     let score = |pred: &[u8]| {
-        let gt_dir = TempDir::new("gt-noise");
-        let pred_dir = TempDir::new("pred-noise");
+        let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-noise");
+        let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-noise");
         write_frame(&gt_dir.0, "s", "lidar", &gt);
         write_frame(&pred_dir.0, "s", "lidar", pred);
         score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &FolderOptions::default()).unwrap()
@@ -241,8 +217,8 @@ fn nuscenes_occupancy_noise_is_ignored_in_gt_and_invalid_in_prediction() {
 /// scored (so a scene without predictions may be left out), and an unknown scene is an error.
 #[test]
 fn nuscenes_occupancy_sequences_select_scenes() {
-    let gt_dir = TempDir::new("gt-seq");
-    let pred_dir = TempDir::new("pred-seq");
+    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-seq");
+    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-seq");
     let g = grid(&[(idx(1, 2, 3), CAR)]);
     write_frame(&gt_dir.0, "s1", "lidar_a", &g);
     write_frame(&gt_dir.0, "s2", "lidar_b", &g);
@@ -251,12 +227,10 @@ fn nuscenes_occupancy_sequences_select_scenes() {
     write_frame(&pred_dir.0, "s2", "lidar_b", &g);
     write_frame(&pred_dir.0, "s2", "lidar_c", &grid(&[]));
     for name in ["s2", "scene_s2"] {
-        let list = vec![name.to_string()];
-        let opts = FolderOptions {
-            sequences: Some(&list),
-            ..Default::default()
-        };
-        let r = score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap();
+        let r = with_sequences(&[name], |opts| {
+            score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, opts)
+        })
+        .unwrap();
         assert_eq!(r.frames, 2, "{name}");
         assert!(close(r.recall, 1.0 / (2.0 + f64::from(f32::EPSILON))));
     }
@@ -265,20 +239,17 @@ fn nuscenes_occupancy_sequences_select_scenes() {
         score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &FolderOptions::default()),
         Err(EvalError::MissingPrediction { .. })
     ));
-    let list = vec!["s9".to_string()];
-    let opts = FolderOptions {
-        sequences: Some(&list),
-        ..Default::default()
-    };
-    let err = score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts).unwrap_err();
+    let err = with_sequences(&["s9"], |opts| {
+        score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, opts)
+    })
+    .unwrap_err();
     assert!(err.to_string().contains("scene_s9"), "{err}");
-    let list = vec!["s2".to_string(), "scene_s2".to_string()];
-    let opts = FolderOptions {
-        sequences: Some(&list),
-        ..Default::default()
-    };
     assert!(matches!(
-        score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &opts),
+        with_sequences(&["s2", "scene_s2"], |opts| score_nuscenes_occupancy_folder(
+            &gt_dir.0,
+            &pred_dir.0,
+            opts
+        )),
         Err(EvalError::InvalidOptions(_))
     ));
 }
