@@ -5,9 +5,12 @@
 //! w.r.t. the grid for a given upstream gradient. Also against a host brute force on random grids
 //! that reach outside the map, on the autodiff and the plain NdArray backends.
 
+#[path = "common/compare.rs"]
+mod compare;
 use burn::backend::{Autodiff, NdArray};
 use burn::prelude::*;
 use burn::tensor::Element;
+use compare::rel_err;
 use occ_model::sample::bilinear_sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -36,14 +39,7 @@ fn fixture(dir: &Path, stem: &str) -> (Vec<f64>, Vec<usize>) {
         .find(|k| Path::new(k).file_stem().and_then(|s| s.to_str()) == Some(stem))
         .unwrap_or_else(|| panic!("manifest.json lists no file `{stem}.*`"))
         .clone();
-    let path = dir.join(name);
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
-    let v = npy
-        .into_vec::<f64>()
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    (v, shape)
+    occ_testdata::read_npy(&dir.join(name))
 }
 
 fn shape4(s: &[usize]) -> [usize; 4] {
@@ -60,16 +56,6 @@ fn t4<B: Backend>(v: &[f64], s: [usize; 4]) -> Tensor<B, 4> {
 
 fn host<B: Backend, const D: usize>(t: Tensor<B, D>) -> Vec<f64> {
     t.into_data().convert::<f64>().to_vec::<f64>().unwrap()
-}
-
-fn rel_err(a: &[f64], b: &[f64]) -> f64 {
-    assert_eq!(a.len(), b.len(), "length mismatch");
-    let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs())).max(1e-300);
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
-        / scale
 }
 
 /// Output and gradients (features, grid) of `sum(bilinear_sample(f, g) * up)`.

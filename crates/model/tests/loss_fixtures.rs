@@ -4,15 +4,19 @@
 //! on seeded random inputs: uniform-weight CE, Lovasz on hard predictions (= 1 − IoU), scal losses
 //! decreasing towards the target, mask BCE / dice by hand, finite-difference gradients.
 
+#[path = "common/compare.rs"]
+mod compare;
 use burn::backend::{Autodiff, NdArray};
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
 use burn::tensor::Element;
+use compare::rel_err;
 use occ_labels::IGNORE;
 use occ_model::loss::{
     cross_entropy, cross_entropy_weighted, depth_bce, dice_loss, dice_per_mask, geo_scal_loss,
     lovasz_softmax, mask_bce, mask_bce_per_mask, monoscene_class_weights, occ_loss, sem_scal_loss,
 };
+use occ_testdata::read_npy;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
@@ -61,16 +65,6 @@ impl Manifest {
             .map(|(k, v)| (k.clone(), v.as_f64().expect("loss value is not a number")))
             .collect()
     }
-}
-
-fn read_npy<T: npyz::Deserialize>(path: &Path) -> (Vec<T>, Vec<usize>) {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
-    let v = npy
-        .into_vec::<T>()
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    (v, shape)
 }
 
 struct LossCase {
@@ -147,17 +141,6 @@ fn eval_loss<B: Backend>(
         "sem_scal" => sem_scal_loss(logits, labels, IGNORE).unwrap(),
         other => panic!("manifest loss `{other}` is not known to this test"),
     }
-}
-
-/// max |a − b| / max |b|
-fn rel_err(a: &[f64], b: &[f64]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs())).max(1e-300);
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
-        / scale
 }
 
 fn check_fixture<B: burn::tensor::backend::AutodiffBackend>(tol: f64, grad_tol: f64) {

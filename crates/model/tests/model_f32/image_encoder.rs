@@ -10,6 +10,7 @@ use burn::tensor::{Tensor, TensorData};
 use occ_model::encoder::backbone::{ResNet, ResNetConfig};
 use occ_model::encoder::fpn::{FpnConfig, ImageEncoder, ImageEncoderConfig};
 use occ_model::encoder::weights::{load_module, load_resnet, LoadOptions, WeightsError};
+use occ_testdata::{read_npy, TempDir};
 use serde_json::Value;
 
 type B32 = NdArray<f32>;
@@ -18,34 +19,13 @@ type B32 = NdArray<f32>;
 const TOL: f64 = 1e-4;
 
 fn data_dir() -> PathBuf {
-    // The manifest dir at run time (cargo sets it), so a test binary reused from another checkout of the
-    // same sources still reads this checkout's data.
-    let manifest = std::env::var_os("CARGO_MANIFEST_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into());
-    let dir = manifest.join("tests/data/resnet_tiny");
-    assert!(
-        dir.join("manifest.json").is_file(),
-        "fixture folder {} (manifest.json) is missing: regenerate it with scripts/make_resnet_fixture.py",
-        dir.display()
-    );
-    dir
+    crate::fixture_dir("resnet_tiny", "make_resnet_fixture.py")
 }
 
 fn manifest() -> Value {
     let path = data_dir().join("manifest.json");
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn read_npy(path: &Path) -> (Vec<f32>, Vec<usize>) {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(&bytes[..]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
-    let v = npy
-        .into_vec::<f32>()
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    (v, shape)
 }
 
 fn usizes(v: &Value) -> Vec<usize> {
@@ -63,7 +43,7 @@ fn str_of<'a>(v: &'a Value, key: &str) -> &'a str {
 }
 
 fn input<Be: Backend>(file: &str) -> Tensor<Be, 4> {
-    let (v, shape) = read_npy(&data_dir().join(file));
+    let (v, shape) = read_npy::<f32>(&data_dir().join(file));
     let shape: [usize; 4] = shape.try_into().expect("4-d input");
     // Tensor::from_data keeps the data's dtype: convert to the backend float type.
     let data = TensorData::new(v, shape).convert::<Be::FloatElem>();
@@ -72,7 +52,7 @@ fn input<Be: Backend>(file: &str) -> Tensor<Be, 4> {
 
 /// Max |got - reference| after checking the shape.
 fn max_err<Be: Backend>(got: &Tensor<Be, 4>, file: &str) -> f64 {
-    let (want, shape) = read_npy(&data_dir().join(file));
+    let (want, shape) = read_npy::<f32>(&data_dir().join(file));
     assert_eq!(got.dims().to_vec(), shape, "{file}: shape");
     let got: Vec<f64> = got
         .to_data()
@@ -217,23 +197,6 @@ fn image_encoder_matches_pytorch_fpn_at_odd_size() {
 
 // ---- corrupted copies -------------------------------------------------------------------------
 
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let p =
-            std::env::temp_dir().join(format!("occ-model-weights-{}-{tag}", std::process::id()));
-        std::fs::create_dir_all(&p).unwrap();
-        TempDir(p)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 struct StEntry {
     name: String,
     dtype: String,
@@ -315,7 +278,7 @@ fn load_err(case: &Value, path: &Path) -> WeightsError {
 #[test]
 fn safetensors_missing_key_and_wrong_shape_are_clear_errors() {
     let (case, src) = fixture_file(".safetensors");
-    let tmp = TempDir::new("st");
+    let tmp = TempDir::new("occ-model-weights", "st");
     let entries = read_safetensors(&src);
 
     // Missing running variance and missing BN weight (reported under the PyTorch name).
@@ -400,7 +363,7 @@ fn safetensors_missing_key_and_wrong_shape_are_clear_errors() {
 fn f64_checkpoint_is_converted_to_the_model_dtype() {
     // Without the conversion the f64 weights would meet the f32 input in conv2d and panic.
     let (case, src) = fixture_file(".safetensors");
-    let tmp = TempDir::new("f64");
+    let tmp = TempDir::new("occ-model-weights", "f64");
     let entries: Vec<StEntry> = read_safetensors(&src)
         .into_iter()
         .map(|mut e| {
@@ -464,7 +427,7 @@ fn rewrite_pth(src: &Path, dst: &Path, pairs: &[(&str, &str)]) {
 #[test]
 fn pth_missing_key_and_wrong_shape_are_clear_errors() {
     let (case, src) = fixture_file(".pth");
-    let tmp = TempDir::new("pth");
+    let tmp = TempDir::new("occ-model-weights", "pth");
 
     let renamed = tmp.0.join("missing.pth");
     let key = "layer4.1.bn2.running_mean";
@@ -515,7 +478,7 @@ fn pth_missing_key_and_wrong_shape_are_clear_errors() {
 #[test]
 fn key_prefix_selects_a_submodule_of_a_larger_checkpoint() {
     let (case, src) = fixture_file(".safetensors");
-    let tmp = TempDir::new("prefix");
+    let tmp = TempDir::new("occ-model-weights", "prefix");
     let mut entries: Vec<StEntry> = read_safetensors(&src)
         .into_iter()
         .map(|mut e| {
@@ -585,7 +548,7 @@ fn key_prefix_selects_a_submodule_of_a_larger_checkpoint() {
 #[test]
 fn unreadable_files_are_errors_not_panics() {
     let (case, _) = fixture_file(".safetensors");
-    let tmp = TempDir::new("bad");
+    let tmp = TempDir::new("occ-model-weights", "bad");
     let mut net = resnet_for::<B32>(&case);
     let missing = tmp.0.join("does_not_exist.pth");
     assert!(matches!(

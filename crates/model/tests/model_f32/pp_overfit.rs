@@ -40,9 +40,7 @@ fn miou(pred: &[u8], gt: &[u8]) -> f64 {
 fn sparseocc_pp_overfits_a_tiny_frame() {
     let _guard = seeded::<B>(21);
     let device = Default::default();
-    let mut r = rng(9);
-    let batch = batch::<B>(vec![vec![camera([-0.5, 0.0, 0.0], 0.0)]], true);
-    let feats = random_tensor::<B, 4>(&mut r, [1, 8, IMG_H / STRIDE, IMG_W / STRIDE]);
+    let (batch, feats) = one_camera_frame::<B>(9, STRIDE);
     let cfg = SparseOccPPConfig::new(NUM_CLASSES, 16, 8, tiny_grid().dims)
         .with_dca_heads(2)
         .with_keep_ratios(vec![1.0, 0.6, 0.5])

@@ -19,16 +19,7 @@ use serde_json::Value;
 type B32 = NdArray<f32>;
 
 fn data_dir() -> PathBuf {
-    let manifest = std::env::var_os("CARGO_MANIFEST_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into());
-    let dir = manifest.join("tests/data/pth_cases");
-    assert!(
-        dir.join("manifest.json").is_file(),
-        "fixture folder {} (manifest.json) is missing: regenerate it with scripts/make_pth_cases_fixture.py",
-        dir.display()
-    );
-    dir
+    crate::fixture_dir("pth_cases", "make_pth_cases_fixture.py")
 }
 
 /// `a`, `b`, `c`, `d`: four `[2, 3]` tensors.

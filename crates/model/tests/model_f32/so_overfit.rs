@@ -29,13 +29,28 @@ fn scalar(t: &Tensor<B, 1>) -> f64 {
     to_vec_f64(t.clone())[0]
 }
 
+/// The lowest loss of the last 10 steps of `history` is below `factor` times the first. (The lowest:
+/// Adam at this step size can spike for a few steps after the loss has fallen (seen once in CI:
+/// 49.9 -> 5.1 at step 50, then 12-20 in the last five, the order of rayon's parallel sums
+/// differing from run to run).)
+fn assert_loss_dropped(model: &str, history: &[f64], secs: f64, factor: f64) {
+    let first = history[0];
+    let last = history[history.len() - 10..]
+        .iter()
+        .copied()
+        .fold(f64::INFINITY, f64::min);
+    eprintln!("{model} loss {first:.3} -> {last:.3} in {secs:.1} s ({history:?})");
+    assert!(
+        last < factor * first,
+        "loss did not drop enough: {first} -> {last}"
+    );
+}
+
 #[test]
 fn sparseocc_overfits_a_tiny_frame() {
     let _guard = seeded::<B>(17);
     let device = Default::default();
-    let mut r = rng(7);
-    let batch = batch::<B>(vec![vec![camera([-0.5, 0.0, 0.0], 0.0)]], true);
-    let feats = random_tensor::<B, 4>(&mut r, [1, 8, IMG_H / STRIDE, IMG_W / STRIDE]);
+    let (batch, feats) = one_camera_frame::<B>(7, STRIDE);
     let cfg = SparseOccConfig::new(NUM_CLASSES, 8, [32, 32, 8])
         .with_lss_channels(8)
         .with_lss_mid_channels(8)
@@ -94,23 +109,7 @@ fn sparseocc_overfits_a_tiny_frame() {
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = optim.step(1e-2, model, grads);
     }
-    let secs = start.elapsed().as_secs_f64();
-    let first = history[0];
-    // The lowest loss of the last 10 steps: Adam at this step size can spike for a few steps after
-    // the loss has fallen (seen once in CI: 49.9 -> 5.1 at step 50, then 12-20 in the last five, the
-    // order of rayon's parallel sums differing from run to run).
-    let last = history[history.len() - 10..]
-        .iter()
-        .copied()
-        .fold(f64::INFINITY, f64::min);
-    eprintln!(
-        "sparseocc loss {first:.3} -> {last:.3} in {secs:.1} s ({:?})",
-        history
-    );
-    assert!(
-        last < 0.3 * first,
-        "loss did not drop enough: {first} -> {last}"
-    );
+    assert_loss_dropped("sparseocc", &history, start.elapsed().as_secs_f64(), 0.3);
 
     // The prediction improved: accuracy of the dense prediction on the labelled 1/2-res voxels.
     let out = model.forward(feats.clone(), STRIDE, &batch).unwrap();
@@ -123,9 +122,7 @@ fn sparseocc_overfits_a_tiny_frame() {
 fn dense_baseline_overfits_a_tiny_frame() {
     let _guard = seeded::<B>(18);
     let device = Default::default();
-    let mut r = rng(8);
-    let batch = batch::<B>(vec![vec![camera([-0.5, 0.0, 0.0], 0.0)]], true);
-    let feats = random_tensor::<B, 4>(&mut r, [1, 8, IMG_H / STRIDE, IMG_W / STRIDE]);
+    let (batch, feats) = one_camera_frame::<B>(8, STRIDE);
     let cfg = DenseBaselineConfig::new(NUM_CLASSES, 8, [32, 32, 8])
         .with_lss_channels(8)
         .with_lss_mid_channels(8)
@@ -149,21 +146,5 @@ fn dense_baseline_overfits_a_tiny_frame() {
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = optim.step(1e-2, model, grads);
     }
-    let secs = start.elapsed().as_secs_f64();
-    let first = history[0];
-    // The lowest loss of the last 10 steps: Adam at this step size can spike for a few steps after
-    // the loss has fallen (seen once in CI: 49.9 -> 5.1 at step 50, then 12-20 in the last five, the
-    // order of rayon's parallel sums differing from run to run).
-    let last = history[history.len() - 10..]
-        .iter()
-        .copied()
-        .fold(f64::INFINITY, f64::min);
-    eprintln!(
-        "dense loss {first:.3} -> {last:.3} in {secs:.1} s ({:?})",
-        history
-    );
-    assert!(
-        last < 0.2 * first,
-        "loss did not drop enough: {first} -> {last}"
-    );
+    assert_loss_dropped("dense", &history, start.elapsed().as_secs_f64(), 0.2);
 }

@@ -2,25 +2,14 @@
 //! SparseOccPP forward pass: its DCA blocks run the host loop on `NdArray<f64>` and the host
 //! autodiff op on `Autodiff<NdArray<f64>>`.
 
-use crate::kernel_checks::{inference_calls, since, training_calls, RESNET18_CONVS};
+use crate::kernel_checks::{assert_host_kernels_taken, since};
 use crate::pp_common::*;
 use occ_model::kernels::{host_kernel_calls, HostKernelCalls};
 use occ_model::sparseocc_pp::{SparseOccPP, SparseOccPPConfig};
 
 #[test]
 fn cpu_backends_take_the_host_kernels_f64() {
-    let expected = HostKernelCalls {
-        conv2d: RESNET18_CONVS + 1,
-        dca: 1,
-        ..Default::default()
-    };
-    assert_eq!(inference_calls::<NB>(), expected);
-    let expected = HostKernelCalls {
-        conv2d_autodiff: RESNET18_CONVS,
-        dca_autodiff: 1,
-        ..Default::default()
-    };
-    assert_eq!(training_calls::<AD>(), expected);
+    assert_host_kernels_taken::<NB, AD>();
 }
 
 fn sparseocc_pp_calls<B: occ_model::ModelBackend>() -> HostKernelCalls {

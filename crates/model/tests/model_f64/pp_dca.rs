@@ -6,7 +6,9 @@ use crate::pp_common;
 use burn::module::Param;
 use burn::prelude::*;
 use occ_geometry::transform_point;
-use occ_model::sparseocc_pp::dca::{project_column_bases, project_queries, DcaConfig, DcaInputs};
+use occ_model::sparseocc_pp::dca::{
+    project_column_bases, project_queries, DcaConfig, DcaInputs, DeformableCrossAttention,
+};
 use pp_common::*;
 
 type B64 = burn::backend::NdArray<f64>;
@@ -28,18 +30,34 @@ fn bilinear(map: &[f64], h: usize, w: usize, x: f64, y: f64) -> f64 {
     acc
 }
 
-#[test]
-fn dca_excludes_views_that_do_not_see_the_voxel() {
-    let device = Default::default();
-    let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
+/// Heads, levels, points per head and level, and channels of the DCA blocks below.
+const DCA_SIZES: (usize, usize, usize, usize) = (2, 2, 3, 8);
+
+/// A DCA block of [`DCA_SIZES`] over `FEAT_C` image channels whose offsets and attention weights
+/// depend on the query (the init makes them constant): the two projections' weights drawn from
+/// `seeds`, the offsets' scaled by `offset_scale`.
+fn query_dependent_dca<Bk: occ_model::kernels::ModelBackend>(
+    seeds: [u64; 2],
+    offset_scale: f64,
+    device: &Bk::Device,
+) -> DeformableCrossAttention<Bk> {
+    let (m, l, p, d) = DCA_SIZES;
     let mut dca = DcaConfig::new(d, FEAT_C)
         .with_num_levels(l)
         .with_num_heads(m)
         .with_num_points(p)
-        .init::<B64>(&device);
-    // Query-dependent offsets and weights (the init makes them constant).
-    dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 11, &device) * 2.0);
-    dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 12, &device));
+        .init::<Bk>(device);
+    dca.sampling_offsets.weight =
+        Param::from_tensor(randn([d, m * l * p * 2], seeds[0], device) * offset_scale);
+    dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], seeds[1], device));
+    dca
+}
+
+#[test]
+fn dca_excludes_views_that_do_not_see_the_voxel() {
+    let device = Default::default();
+    let (m, l, p, d) = DCA_SIZES;
+    let dca = query_dependent_dca::<B64>([11, 12], 2.0, &device);
     let g = grid();
     let cams = cameras(1);
     // A: behind camera 0, seen by camera 1. B: seen by both. C: seen by none.
@@ -137,15 +155,8 @@ fn dca_excludes_views_that_do_not_see_the_voxel() {
 fn dca_host_loop_equals_tensor_ops() {
     fn check<Bk: occ_model::kernels::ModelBackend>(tol: f64) {
         let device = Default::default();
-        let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
-        let mut dca = DcaConfig::new(d, FEAT_C)
-            .with_num_levels(l)
-            .with_num_heads(m)
-            .with_num_points(p)
-            .init::<Bk>(&device);
-        dca.sampling_offsets.weight =
-            Param::from_tensor(randn([d, m * l * p * 2], 21, &device) * 3.0);
-        dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 22, &device));
+        let d = DCA_SIZES.3;
+        let dca = query_dependent_dca::<Bk>([21, 22], 3.0, &device);
         let g = grid();
         let coords: Vec<[i32; 4]> = (0..2)
             .flat_map(|b| (0..64).map(move |i| [b, (i * 5) % 32, (i * 11) % 32, i % 8]))
@@ -211,14 +222,8 @@ fn dca_host_loop_equals_tensor_ops() {
 #[test]
 fn dca_host_autodiff_equals_tensor_ops_with_gradients() {
     let device = Default::default();
-    let (m, l, p, d) = (2usize, 2usize, 3usize, 8usize);
-    let mut dca = DcaConfig::new(d, FEAT_C)
-        .with_num_levels(l)
-        .with_num_heads(m)
-        .with_num_points(p)
-        .init::<AD>(&device);
-    dca.sampling_offsets.weight = Param::from_tensor(randn([d, m * l * p * 2], 31, &device) * 3.0);
-    dca.attention_weights.weight = Param::from_tensor(randn([d, m * l * p], 32, &device));
+    let d = DCA_SIZES.3;
+    let dca = query_dependent_dca::<AD>([31, 32], 3.0, &device);
     let g = grid();
     // Two batch items of two cameras: queries seen by 0, 1 or 2 views.
     let coords: Vec<[i32; 4]> = (0..2)

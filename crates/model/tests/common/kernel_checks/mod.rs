@@ -57,6 +57,21 @@ fn images<B: Backend>(device: &B::Device) -> [Tensor<B, 4>; 2] {
     ]
 }
 
+/// The inputs of one ungated DCA attention of `query` over `images` (strides 4 and 8).
+fn dca_inputs<'a, B: Backend>(
+    query: &Tensor<B, 2>,
+    hits: &'a ViewHits,
+    images: &'a [Tensor<B, 4>],
+) -> DcaInputs<'a, B> {
+    DcaInputs {
+        query: query.clone(),
+        hits,
+        feats: images,
+        strides: &[4, 8],
+        gate: None,
+    }
+}
+
 /// Inference: what a ResNet-18 forward pass, one `conv_bn` and one DCA attention count on `B`, and
 /// that the portable paths count nothing.
 pub fn inference_calls<B: ModelBackend>() -> HostKernelCalls {
@@ -69,13 +84,7 @@ pub fn inference_calls<B: ModelBackend>() -> HostKernelCalls {
     let dca = dca::<B>(&device);
     let (hits, images) = (hits(), images::<B>(&device));
     let query = Tensor::<B, 2>::random([2, 8], Distribution::Normal(0.0, 1.0), &device);
-    let inputs = || DcaInputs {
-        query: query.clone(),
-        hits: &hits,
-        feats: &images,
-        strides: &[4, 8],
-        gate: None,
-    };
+    let inputs = || dca_inputs(&query, &hits, &images);
 
     // The portable paths, called directly: no host kernel.
     let before = host_kernel_calls();
@@ -115,13 +124,7 @@ pub fn training_calls<B: ModelBackend + AutodiffBackend>() -> HostKernelCalls {
         .map(|t| t.require_grad())
         .collect();
     let query = Tensor::<B, 2>::random([2, 8], Distribution::Normal(0.0, 1.0), &device);
-    let inputs = || DcaInputs {
-        query: query.clone(),
-        hits: &hits,
-        feats: &images,
-        strides: &[4, 8],
-        gate: None,
-    };
+    let inputs = || dca_inputs(&query, &hits, &images);
 
     let before = host_kernel_calls();
     conv_bn_portable(&resnet.conv1, Some(&resnet.bn1), x.clone(), true);
@@ -142,4 +145,21 @@ pub fn training_calls<B: ModelBackend + AutodiffBackend>() -> HostKernelCalls {
         assert!(f.grad(&grads).is_some(), "no gradient through the DCA op");
     }
     calls
+}
+
+/// Inference backend `I` takes the host kernels for every conv2d (the ResNet-18's and the extra
+/// one) and the DCA sampling, and training backend `T` the host autodiff ops for both.
+pub fn assert_host_kernels_taken<I: ModelBackend, T: ModelBackend + AutodiffBackend>() {
+    let expected = HostKernelCalls {
+        conv2d: RESNET18_CONVS + 1,
+        dca: 1,
+        ..Default::default()
+    };
+    assert_eq!(inference_calls::<I>(), expected);
+    let expected = HostKernelCalls {
+        conv2d_autodiff: RESNET18_CONVS,
+        dca_autodiff: 1,
+        ..Default::default()
+    };
+    assert_eq!(training_calls::<T>(), expected);
 }

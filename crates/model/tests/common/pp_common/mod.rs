@@ -288,11 +288,8 @@ pub fn assert_all_grads<B: AutodiffBackend, M: Module<B>>(
 
 /// Reads an .npy file: shape and values.
 pub fn read_npy<T: npyz::Deserialize>(path: &std::path::Path) -> (Vec<usize>, Vec<T>) {
-    let f = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let npy = npyz::NpyFile::new(std::io::BufReader::new(f))
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let shape = npy.shape().iter().map(|&d| d as usize).collect();
-    (shape, npy.into_vec().unwrap())
+    let (values, shape) = occ_testdata::read_npy(path);
+    (shape, values)
 }
 
 /// `$SPARSEOCC_FIXTURES/reference` and its manifest's file table, or `None` (skip reported by

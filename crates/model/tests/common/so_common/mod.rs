@@ -133,3 +133,13 @@ pub fn seeded<B: Backend>(seed: u64) -> std::sync::MutexGuard<'static, ()> {
     B::seed(&Default::default(), seed);
     guard
 }
+
+/// The input of the overfitting tests: the scene seen by one camera at (-0.5, 0, 0) m with yaw 0
+/// ([`camera`]), its labels as targets, and random image features
+/// `[1, 8, IMG_H / stride, IMG_W / stride]` drawn with seed `feature_seed`.
+pub fn one_camera_frame<B: Backend>(feature_seed: u64, stride: usize) -> (Batch<B>, Tensor<B, 4>) {
+    let mut r = rng(feature_seed);
+    let batch = batch::<B>(vec![vec![camera([-0.5, 0.0, 0.0], 0.0)]], true);
+    let feats = random_tensor::<B, 4>(&mut r, [1, 8, IMG_H / stride, IMG_W / stride]);
+    (batch, feats)
+}
