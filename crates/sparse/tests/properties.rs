@@ -103,6 +103,29 @@ fn inverse_map_is_transpose_of_strided_map() {
     assert_eq!(map3.num_pairs(), map.num_pairs());
 }
 
+/// Central differences (step 1e-6) of `f` at every `every`-th entry of `v` against the analytic
+/// gradient `grad`, to 1e-7.
+fn check_central_differences(
+    what: &str,
+    v: &[f64],
+    every: usize,
+    grad: &[f64],
+    f: &dyn Fn(&[f64]) -> f64,
+) {
+    let h = 1e-6;
+    for i in (0..v.len()).step_by(every) {
+        let (mut a, mut b) = (v.to_vec(), v.to_vec());
+        a[i] += h;
+        b[i] -= h;
+        let fd = (f(&a) - f(&b)) / (2.0 * h);
+        assert!(
+            (fd - grad[i]).abs() < 1e-7,
+            "{what}[{i}]: fd {fd} vs {}",
+            grad[i]
+        );
+    }
+}
+
 /// Central finite differences of the host path (f64) for input features and weights.
 #[test]
 fn finite_difference_gradients() {
@@ -171,29 +194,8 @@ fn finite_difference_gradients() {
             &map.transposed(),
         );
         let dw = host::conv_weight_grad(&xv, &rv, wview, &map);
-        let h = 1e-6;
-        for i in (0..xv.len()).step_by(3) {
-            let (mut a, mut b) = (xv.clone(), xv.clone());
-            a[i] += h;
-            b[i] -= h;
-            let fd = (loss(&a, &wv) - loss(&b, &wv)) / (2.0 * h);
-            assert!(
-                (fd - dx[i]).abs() < 1e-7,
-                "{kind:?} dx[{i}]: fd {fd} vs {}",
-                dx[i]
-            );
-        }
-        for i in (0..wv.len()).step_by(5) {
-            let (mut a, mut b) = (wv.clone(), wv.clone());
-            a[i] += h;
-            b[i] -= h;
-            let fd = (loss(&xv, &a) - loss(&xv, &b)) / (2.0 * h);
-            assert!(
-                (fd - dw[i]).abs() < 1e-7,
-                "{kind:?} dw[{i}]: fd {fd} vs {}",
-                dw[i]
-            );
-        }
+        check_central_differences(&format!("{kind:?} dx"), &xv, 3, &dx, &|a| loss(a, &wv));
+        check_central_differences(&format!("{kind:?} dw"), &wv, 5, &dw, &|a| loss(&xv, a));
         // The portable burn-ops path (used on GPU backends) agrees with the host path.
         let dev = Default::default();
         let xt = Tensor::<Inner, 2>::from_data(TensorData::new(xv.clone(), [n, cin]), &dev);
@@ -202,55 +204,76 @@ fn finite_difference_gradients() {
         assert!(map.gather_table().is_some());
         let yh = host::conv_forward(&xv, &wv, wview, &map);
         let rt = Tensor::<Inner, 2>::from_data(TensorData::new(rv.clone(), [m, cout]), &dev);
-        let yp = to_vec_inner(conv_forward_portable(xt.clone(), wt.clone(), &map, false));
-        assert!(
-            max_abs_diff(&yp, &yh) < 1e-12,
-            "{kind:?} implicit GEMM forward"
-        );
-        let yo = to_vec_inner(conv_forward_per_offset(xt.clone(), wt.clone(), &map, false));
-        assert!(
-            max_abs_diff(&yo, &yh) < 1e-12,
-            "{kind:?} per-offset forward"
-        );
         let ws = [cout, kv, cin];
-        let dwp = to_vec_inner(conv_weight_grad_portable(
-            xt.clone(),
-            rt.clone(),
-            &map,
-            ws,
-            false,
-        ));
-        assert!(max_abs_diff(&dwp, &dw) < 1e-12, "{kind:?} implicit GEMM dw");
-        let dwo = to_vec_inner(conv_weight_grad_per_offset(
-            xt.clone(),
-            rt.clone(),
-            &map,
-            ws,
-            false,
-        ));
-        assert!(max_abs_diff(&dwo, &dw) < 1e-12, "{kind:?} per-offset dw");
-        // dx through the transposed map and transposed weight view, as the autodiff backward does.
-        let dxp = to_vec_inner(conv_forward_portable(
-            rt.clone(),
-            wt.clone(),
-            &map.transposed(),
-            true,
-        ));
-        assert!(max_abs_diff(&dxp, &dx) < 1e-12, "{kind:?} implicit GEMM dx");
-        // In row chunks (7 output rows per gathered block here).
+        // In row chunks: 7 output rows per gathered block here.
         let lim = 7 * kv * cin;
-        let yc = to_vec_inner(conv_forward_portable_chunked(
-            xt.clone(),
-            wt,
-            &map,
-            false,
-            lim,
-        ));
-        assert!(max_abs_diff(&yc, &yh) < 1e-12, "{kind:?} chunked forward");
-        let dwc = to_vec_inner(conv_weight_grad_portable_chunked(
-            xt, rt, &map, ws, false, lim,
-        ));
-        assert!(max_abs_diff(&dwc, &dw) < 1e-12, "{kind:?} chunked dw");
+        let checks: [(&str, Vec<f64>, &[f64]); 7] = [
+            (
+                "implicit GEMM forward",
+                to_vec_inner(conv_forward_portable(xt.clone(), wt.clone(), &map, false)),
+                &yh,
+            ),
+            (
+                "per-offset forward",
+                to_vec_inner(conv_forward_per_offset(xt.clone(), wt.clone(), &map, false)),
+                &yh,
+            ),
+            (
+                "implicit GEMM dw",
+                to_vec_inner(conv_weight_grad_portable(
+                    xt.clone(),
+                    rt.clone(),
+                    &map,
+                    ws,
+                    false,
+                )),
+                &dw,
+            ),
+            (
+                "per-offset dw",
+                to_vec_inner(conv_weight_grad_per_offset(
+                    xt.clone(),
+                    rt.clone(),
+                    &map,
+                    ws,
+                    false,
+                )),
+                &dw,
+            ),
+            // dx through the transposed map and transposed weight view, as the autodiff backward
+            // does.
+            (
+                "implicit GEMM dx",
+                to_vec_inner(conv_forward_portable(
+                    rt.clone(),
+                    wt.clone(),
+                    &map.transposed(),
+                    true,
+                )),
+                &dx,
+            ),
+            (
+                "chunked forward",
+                to_vec_inner(conv_forward_portable_chunked(
+                    xt.clone(),
+                    wt,
+                    &map,
+                    false,
+                    lim,
+                )),
+                &yh,
+            ),
+            (
+                "chunked dw",
+                to_vec_inner(conv_weight_grad_portable_chunked(
+                    xt, rt, &map, ws, false, lim,
+                )),
+                &dw,
+            ),
+        ];
+        for (what, got, want) in checks {
+            assert!(max_abs_diff(&got, want) < 1e-12, "{kind:?} {what}");
+        }
     }
 }
 
@@ -375,47 +398,34 @@ fn bad_input_is_an_error_not_a_panic() {
     ));
     let t = SparseTensor::<B64>::new(vec![[0, 1, 0, 0], [0, 2, 0, 0]], x, [4, 4, 4], 1).unwrap();
     // Wrong weight layout (Cin in the wrong place) and wrong channel count.
-    let w = t5(vec![0.0; 3 * 27 * 5], [3, 3, 3, 3, 5]);
-    let e = sparse_conv3d(
-        t.clone(),
-        w,
-        None,
-        ConvKind::Submanifold,
-        ConvGeometry::new([3, 3, 3]),
-        [0; 3],
-    );
+    let submanifold_3 = |w| {
+        sparse_conv3d(
+            t.clone(),
+            w,
+            None,
+            ConvKind::Submanifold,
+            ConvGeometry::new([3, 3, 3]),
+            [0; 3],
+        )
+    };
+    let e = submanifold_3(t5(vec![0.0; 3 * 27 * 5], [3, 3, 3, 3, 5]));
     assert!(matches!(e, Err(SparseError::Shape(_))), "{e:?}");
-    let w = t5(vec![0.0; 5 * 9 * 3], [5, 3, 3, 1, 3]);
-    let e = sparse_conv3d(
-        t.clone(),
-        w,
-        None,
-        ConvKind::Submanifold,
-        ConvGeometry::new([3, 3, 3]),
-        [0; 3],
-    );
+    let e = submanifold_3(t5(vec![0.0; 5 * 9 * 3], [5, 3, 3, 1, 3]));
     assert!(matches!(e, Err(SparseError::WeightLayout { .. })), "{e:?}");
     // Even submanifold kernel, zero stride, kernel larger than the grid.
     let dev = Default::default();
-    let conv = SparseConv3dConfig::new(3, 4, [2, 2, 2]).init::<B64>(&dev);
-    assert!(matches!(
-        conv.forward(t.clone()),
-        Err(SparseError::Config(_))
+    let config_error = |cfg: SparseConv3dConfig| {
+        let conv = cfg.init::<B64>(&dev);
+        matches!(conv.forward(t.clone()), Err(SparseError::Config(_)))
+    };
+    assert!(config_error(SparseConv3dConfig::new(3, 4, [2, 2, 2])));
+    assert!(config_error(
+        SparseConv3dConfig::new(3, 4, [3, 3, 3])
+            .with_kind(ConvKind::Regular)
+            .with_stride([0, 1, 1])
     ));
-    let conv = SparseConv3dConfig::new(3, 4, [3, 3, 3])
-        .with_kind(ConvKind::Regular)
-        .with_stride([0, 1, 1])
-        .init::<B64>(&dev);
-    assert!(matches!(
-        conv.forward(t.clone()),
-        Err(SparseError::Config(_))
-    ));
-    let conv = SparseConv3dConfig::new(3, 4, [9, 1, 1])
-        .with_kind(ConvKind::Regular)
-        .init::<B64>(&dev);
-    assert!(matches!(
-        conv.forward(t.clone()),
-        Err(SparseError::Config(_))
+    assert!(config_error(
+        SparseConv3dConfig::new(3, 4, [9, 1, 1]).with_kind(ConvKind::Regular)
     ));
     // Inverse without a matching strided conv.
     let conv = SparseConv3dConfig::new(3, 4, [3, 3, 3])
