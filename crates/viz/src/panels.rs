@@ -15,6 +15,22 @@ pub const PANEL_GAP: usize = 8;
 const BG: [u8; 3] = [40, 40, 40];
 const LABEL_COLOR: [u8; 3] = [240, 240, 240];
 
+/// The panels' images as canvases; an error names the first empty one.
+fn panel_canvases(panels: &[(&str, &RgbImage)]) -> Result<Vec<Canvas>, VizError> {
+    panels
+        .iter()
+        .map(|(label, img)| {
+            let c = image_to_canvas(img)?;
+            if c.width == 0 || c.height == 0 {
+                return Err(VizError::InvalidOptions(format!(
+                    "panel {label:?} is empty"
+                )));
+            }
+            Ok(c)
+        })
+        .collect()
+}
+
 /// Lay `panels` out row by row in a grid of `columns` columns (the last row may be short), each
 /// scaled (bilinear, aspect kept) to the width of the widest one and centred in a cell as tall
 /// as the tallest scaled panel, with its label centred in a strip above it. The same border,
@@ -27,16 +43,7 @@ pub fn panel_grid(panels: &[(&str, &RgbImage)], columns: usize) -> Result<RgbIma
             panels.len()
         )));
     }
-    let mut canvases = Vec::with_capacity(panels.len());
-    for (label, img) in panels {
-        let c = image_to_canvas(img)?;
-        if c.width == 0 || c.height == 0 {
-            return Err(VizError::InvalidOptions(format!(
-                "panel {label:?} is empty"
-            )));
-        }
-        canvases.push(c);
-    }
+    let canvases = panel_canvases(panels)?;
     let cell_w = canvases.iter().map(|c| c.width).max().unwrap_or(1);
     let heights: Vec<usize> = canvases
         .iter()
@@ -82,16 +89,7 @@ pub fn side_by_side(panels: &[(&str, &RgbImage)]) -> Result<RgbImage, VizError> 
             "side_by_side needs at least one panel".into(),
         ));
     }
-    let mut canvases = Vec::with_capacity(panels.len());
-    for (label, img) in panels {
-        let c = image_to_canvas(img)?;
-        if c.width == 0 || c.height == 0 {
-            return Err(VizError::InvalidOptions(format!(
-                "panel {label:?} is empty"
-            )));
-        }
-        canvases.push(c);
-    }
+    let canvases = panel_canvases(panels)?;
     let target_h = canvases.iter().map(|c| c.height).max().unwrap_or(1);
     let widths: Vec<f64> = canvases
         .iter()

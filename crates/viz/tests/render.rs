@@ -206,6 +206,26 @@ fn empty_and_ignored_voxels_render_background_only() {
     assert!(img.data.chunks(3).any(|p| p != opts.background));
 }
 
+/// LiDAR (x fwd, y left, z up) -> camera (x right, y down, z fwd), both at the origin.
+const FORWARD: Mat4 = [
+    [0.0, -1.0, 0.0, 0.0],
+    [0.0, 0.0, -1.0, 0.0],
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// A `width` x `height` camera of focal length 100 px with its principal point at (64, 48).
+fn camera_f100(width: usize, height: usize) -> PinholeCamera {
+    PinholeCamera {
+        fx: 100.0,
+        fy: 100.0,
+        cx: 64.0,
+        cy: 48.0,
+        width,
+        height,
+    }
+}
+
 #[test]
 fn zbuffer_near_voxel_occludes_far_one_in_both_index_orders() {
     // A camera at the origin looking along +x (forward) and one looking along -x (backward),
@@ -215,21 +235,7 @@ fn zbuffer_near_voxel_occludes_far_one_in_both_index_orders() {
         voxel_size_m: 1.0,
         dims: [20, 5, 5],
     };
-    let cam = PinholeCamera {
-        fx: 100.0,
-        fy: 100.0,
-        cx: 64.0,
-        cy: 48.0,
-        width: 129,
-        height: 97,
-    };
-    // LiDAR (x fwd, y left, z up) -> camera (x right, y down, z fwd).
-    let fwd: Mat4 = [
-        [0.0, -1.0, 0.0, 0.0],
-        [0.0, 0.0, -1.0, 0.0],
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
+    let cam = camera_f100(129, 97);
     let back: Mat4 = [
         [0.0, 1.0, 0.0, 0.0],
         [0.0, 0.0, -1.0, 0.0],
@@ -237,7 +243,7 @@ fn zbuffer_near_voxel_occludes_far_one_in_both_index_orders() {
         [0.0, 0.0, 0.0, 1.0],
     ];
     let opts = plain_opts(Palette::SemanticKitti);
-    for (m, near_i, far_i) in [(fwd, 13usize, 17usize), (back, 6, 2)] {
+    for (m, near_i, far_i) in [(FORWARD, 13usize, 17usize), (back, 6, 2)] {
         let view = CameraView::new(cam, m);
         // Near voxel: building (yellow), far voxel: car (blue); both centred on the optical axis.
         for (near_c, far_c) in [(13u8, 1u8), (1, 13)] {
@@ -269,21 +275,7 @@ fn overlay_setup() -> (VoxelGrid, CameraView) {
         voxel_size_m: 0.5,
         dims: [20, 11, 11],
     };
-    let cam = PinholeCamera {
-        fx: 100.0,
-        fy: 100.0,
-        cx: 64.0,
-        cy: 48.0,
-        width: 128,
-        height: 96,
-    };
-    let cam_from_lidar: Mat4 = [
-        [0.0, -1.0, 0.0, 0.0],
-        [0.0, 0.0, -1.0, 0.0],
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
-    (grid, CameraView::new(cam, cam_from_lidar))
+    (grid, CameraView::new(camera_f100(128, 96), FORWARD))
 }
 
 fn grey_image(w: usize, h: usize, v: u8) -> RgbImage {
@@ -294,17 +286,27 @@ fn grey_image(w: usize, h: usize, v: u8) -> RgbImage {
     }
 }
 
+/// [`overlay_setup`]'s grid and projection, a grey 128x96 image (value 100), and labels with a near
+/// building voxel (13, centre x = 3.75 m) and a far car voxel (1, centre x = 9.75 m) on the optical
+/// axis.
+fn near_and_far_voxel() -> (VoxelGrid, Mat4, RgbImage, Vec<u8>) {
+    let (grid, view) = overlay_setup();
+    let mut labels = vec![0u8; grid.num_voxels()];
+    set(&mut labels, &grid, [3, 5, 5], 13);
+    set(&mut labels, &grid, [15, 5, 5], 1);
+    (
+        grid,
+        view.img_from_lidar(),
+        grey_image(128, 96, 100),
+        labels,
+    )
+}
+
 #[test]
 fn overlay_paints_far_first_and_blends() {
-    let (grid, view) = overlay_setup();
-    let m = view.img_from_lidar();
-    let img = grey_image(128, 96, 100);
+    let (grid, m, img, labels) = near_and_far_voxel();
     let p = Palette::SemanticKitti;
-    let (near_c, far_c) = (13u8, 1u8);
-    let mut labels = vec![0u8; grid.num_voxels()];
-    set(&mut labels, &grid, [3, 5, 5], near_c); // centre x = 3.75 m
-    set(&mut labels, &grid, [15, 5, 5], far_c); // centre x = 9.75 m
-    let (nrgb, frgb) = (p.color(near_c).unwrap(), p.color(far_c).unwrap());
+    let (nrgb, frgb) = (p.color(13).unwrap(), p.color(1).unwrap());
 
     let mut opts = OverlayOptions::new(p);
     opts.alpha = 1.0;
@@ -332,15 +334,9 @@ fn overlay_paints_far_first_and_blends() {
 
 #[test]
 fn overlay_nearest_only_blends_each_pixel_once_with_the_nearest_voxel() {
-    let (grid, view) = overlay_setup();
-    let m = view.img_from_lidar();
-    let img = grey_image(128, 96, 100);
+    let (grid, m, img, mut labels) = near_and_far_voxel();
     let p = Palette::SemanticKitti;
-    let (near_c, far_c) = (13u8, 1u8);
-    let mut labels = vec![0u8; grid.num_voxels()];
-    set(&mut labels, &grid, [3, 5, 5], near_c);
-    set(&mut labels, &grid, [15, 5, 5], far_c);
-    let (nrgb, frgb) = (p.color(near_c).unwrap(), p.color(far_c).unwrap());
+    let (nrgb, frgb) = (p.color(13).unwrap(), p.color(1).unwrap());
     let mut opts = OverlayOptions::new(p);
     opts.outline = false;
     opts.nearest_only = true;

@@ -12,20 +12,9 @@ use std::ops::Range;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// SemanticKITTI learning classes used by the scene.
-pub mod class {
-    pub const CAR: u8 = 1;
-    pub const PERSON: u8 = 6;
-    pub const ROAD: u8 = 9;
-    pub const SIDEWALK: u8 = 11;
-    pub const BUILDING: u8 = 13;
-    pub const FENCE: u8 = 14;
-    pub const VEGETATION: u8 = 15;
-    pub const TRUNK: u8 = 16;
-    pub const TERRAIN: u8 = 17;
-    pub const POLE: u8 = 18;
-    pub const TRAFFIC_SIGN: u8 = 19;
-}
+/// SemanticKITTI learning classes (the scene uses car, person, road, sidewalk, building, fence,
+/// vegetation, trunk, terrain, pole and traffic sign).
+pub use occ_data::synthetic::classes as class;
 
 struct Grid {
     dims: [usize; 3],
