@@ -2,10 +2,11 @@
 //! dataset's frames, and what the final head predicts for each ground-truth class.
 //!
 //! `cargo run --release -p occ-train --example anchor_diag -- RUN_DIR DATA_DIR SEQ [FRAMES]`
+mod common;
+
 use burn::backend::NdArray;
 use occ_model::sparseocc_pp::pp_targets;
-use occ_train::dataset::{collate, Dataset};
-use std::path::Path;
+use occ_train::dataset::collate;
 
 type B = NdArray<f32>;
 
@@ -20,19 +21,8 @@ fn argmax1<const D: usize>(t: &burn::tensor::Tensor<B, D>) -> Result<Vec<i64>, S
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() < 4 {
-        return Err("usage: anchor_diag RUN_DIR DATA_DIR SEQ [FRAMES]".into());
-    }
     let device = Default::default();
-    let (cfg, grid, model) = occ_train::trainer::load_run::<B>(Path::new(&args[1]), &device)?;
-    let mut ds = Dataset::open(Path::new(&args[2]), &cfg.data, &[args[3].clone()], &[])?;
-    ds.set_load_points(true);
-    let frames: usize = args
-        .get(4)
-        .map(|s| s.parse())
-        .transpose()?
-        .unwrap_or(ds.len());
+    let (cfg, grid, model, ds, frames) = common::open_run::<B>("anchor_diag", &device)?;
     let occ_model::Network::SparseOccPP(pp) = model.network()? else {
         return Err("not a SparseOcc++ run".into());
     };

@@ -4,10 +4,11 @@
 //! class), on the valid voxels, test-time mirror included.
 //!
 //! `cargo run --release -p occ-train --example decode_diag -- RUN_DIR DATA_DIR SEQ [FRAMES]`
+mod common;
+
 use burn::backend::NdArray;
-use occ_train::dataset::{collate, Dataset};
+use occ_train::dataset::collate;
 use occ_train::mirror::mirror_sample_y;
-use std::path::Path;
 
 type B = NdArray<f32>;
 
@@ -68,20 +69,8 @@ impl Score {
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() < 4 {
-        return Err("usage: decode_diag RUN_DIR DATA_DIR SEQ [FRAMES]".into());
-    }
     let device = Default::default();
-    let (cfg, grid, model) = occ_train::trainer::load_run::<B>(Path::new(&args[1]), &device)?;
-    let mut ds = Dataset::open(Path::new(&args[2]), &cfg.data, &[args[3].clone()], &[])?;
-    // The diagnostic depth oracle reads the LiDAR scan; no other forward pass does.
-    ds.set_load_points(true);
-    let frames: usize = args
-        .get(4)
-        .map(|s| s.parse())
-        .transpose()?
-        .unwrap_or(ds.len());
+    let (cfg, grid, model, ds, frames) = common::open_run::<B>("decode_diag", &device)?;
     let nc = cfg.model.num_classes;
     let taus = [0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1];
     let mut argmax = Score::new(nc);

@@ -14,6 +14,15 @@ struct Tiny<B: Backend> {
     norm: LayerNorm<B>,
 }
 
+/// A 3 -> 4 linear layer and a layer norm over 4, on the default device.
+fn tiny() -> Tiny<B> {
+    let dev = Default::default();
+    Tiny {
+        fc: LinearConfig::new(3, 4).init(&dev),
+        norm: LayerNormConfig::new(4).init(&dev),
+    }
+}
+
 fn grads_of(m: &Tiny<B>) -> GradientsParams {
     let dev = Default::default();
     let x = Tensor::<B, 2>::from_floats([[1.0, -2.0, 0.5], [0.3, 0.1, -1.0]], &dev);
@@ -41,11 +50,7 @@ fn sq_sum(g: &GradientsParams, m: &Tiny<B>) -> f64 {
 
 #[test]
 fn clipping_uses_the_global_norm() {
-    let dev = Default::default();
-    let m = Tiny::<B> {
-        fc: LinearConfig::new(3, 4).init(&dev),
-        norm: LayerNormConfig::new(4).init(&dev),
-    };
+    let m = tiny();
     let mut g = grads_of(&m);
     let norm = global_grad_norm::<B, _>(&m, &g);
     assert!((norm - sq_sum(&g, &m).sqrt()).abs() < 1e-12);
@@ -62,11 +67,7 @@ fn clipping_uses_the_global_norm() {
 
 #[test]
 fn no_decay_group_holds_biases_and_norms() {
-    let dev = Default::default();
-    let m = Tiny::<B> {
-        fc: LinearConfig::new(3, 4).init(&dev),
-        norm: LayerNormConfig::new(4).init(&dev),
-    };
+    let m = tiny();
     let mut g = grads_of(&m);
     let total = g.len();
     assert_eq!(total, param_ids::<B, _>(&m).len());
