@@ -20,22 +20,6 @@ fn tmp(name: &str) -> PathBuf {
 static TINY: std::sync::LazyLock<String> =
     std::sync::LazyLock::new(|| support::tiny_config(2, 1, &[]));
 
-/// CRC-32 of PNG chunks.
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = 0xFFFF_FFFFu32;
-    for &b in bytes {
-        c ^= b as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
-
 /// A small valid PNG whose header claims `w` x `h` pixels.
 fn png_claiming(w: u32, h: u32) -> Vec<u8> {
     let img = occ_data::image::RgbImage {
@@ -43,12 +27,7 @@ fn png_claiming(w: u32, h: u32) -> Vec<u8> {
         height: 4,
         data: vec![9; 48],
     };
-    let mut b = occ_data::image::encode_png(&img).unwrap();
-    b[16..20].copy_from_slice(&w.to_be_bytes());
-    b[20..24].copy_from_slice(&h.to_be_bytes());
-    let crc = crc32(&b[12..29]);
-    b[29..33].copy_from_slice(&crc.to_be_bytes());
-    b
+    occ_testdata::png_claiming_size(&occ_data::image::encode_png(&img).unwrap(), w, h)
 }
 
 /// Every file below `dir` (recursively).
@@ -164,12 +143,10 @@ fn bad_input_table() {
 
     // Predictions = the ground truth (a valid submission folder).
     let pred = root.join("pred");
-    std::fs::create_dir_all(pred.join("sequences/08/predictions")).unwrap();
-    std::fs::copy(
+    support::copy_file(
         &gt_label,
-        pred.join("sequences/08/predictions/000000.label"),
-    )
-    .unwrap();
+        &pred.join("sequences/08/predictions/000000.label"),
+    );
 
     // Bad configs: one line changed in TINY.
     let bad_cfg = |name: &str, from: &str, to: &str| -> PathBuf {
@@ -651,12 +628,10 @@ fn concurrent_writers_of_one_output() {
         OsStr::new("08:1"),
     ]);
     let pred = root.join("pred");
-    std::fs::create_dir_all(pred.join("sequences/08/predictions")).unwrap();
-    std::fs::copy(
-        data.join("sequences/08/voxels/000000.label"),
-        pred.join("sequences/08/predictions/000000.label"),
-    )
-    .unwrap();
+    support::copy_file(
+        &data.join("sequences/08/voxels/000000.label"),
+        &pred.join("sequences/08/predictions/000000.label"),
+    );
     let out = root.join("out");
     std::fs::create_dir_all(&out).unwrap();
     let json = out.join("same.json");

@@ -161,12 +161,10 @@ fn train_resume_infer_eval_and_bad_input() {
     assert!(e.contains("learning_rate"), "{e}");
     // A checkpoint whose config no longer matches its weights.
     let mism = root.join("mismatch");
-    std::fs::create_dir_all(mism.join("checkpoint")).unwrap();
-    std::fs::copy(
-        run_dir.join("checkpoint/model.bin"),
-        mism.join("checkpoint/model.bin"),
-    )
-    .unwrap();
+    support::copy_file(
+        &run_dir.join("checkpoint/model.bin"),
+        &mism.join("checkpoint/model.bin"),
+    );
     std::fs::copy(run_dir.join("grid.json"), mism.join("grid.json")).unwrap();
     let saved = std::fs::read_to_string(run_dir.join("config.toml")).unwrap();
     std::fs::write(

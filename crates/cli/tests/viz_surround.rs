@@ -631,6 +631,13 @@ fn custom_rigs_and_bad_tables_are_handled() {
         d
     };
     let out = t.0.join("bad.png");
+    // `viz --nuscenes ROOT ARGS --out OUT` fails with status 1 and an error naming each of `want`.
+    let viz_fails = |root: &Path, args: &[&str], want: &[&str]| {
+        let err = fails(&[&["viz", "--nuscenes", p(root)], args, &["--out", p(&out)]].concat());
+        for w in want {
+            assert!(err.contains(w), "{err}");
+        }
+    };
     let no_cam = case("no_cam_row", &|tb| {
         let drop: Vec<String> = tb
             .sample_data
@@ -640,18 +647,10 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sample_data.retain(|sd| !drop.contains(&sd.token));
     });
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&no_cam),
-        "--sample",
-        &s1,
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("sample_data.json") && err.contains("CAM_BACK") && err.contains(&s1),
-        "{err}"
+    viz_fails(
+        &no_cam,
+        &["--sample", &s1],
+        &["sample_data.json", "CAM_BACK", &s1],
     );
     // The other frame of that scene is still fine.
     ok(&[
@@ -673,18 +672,10 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sample_data = keep;
     });
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&no_lidar),
-        "--sample",
-        &s1,
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("sample_data.json") && err.contains("LIDAR_TOP"),
-        "{err}"
+    viz_fails(
+        &no_lidar,
+        &["--sample", &s1],
+        &["sample_data.json", "LIDAR_TOP"],
     );
     let no_sensor = case("no_sensor", &|tb| {
         let keep: Vec<Sensor> = tb
@@ -695,16 +686,7 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .collect();
         tb.sensor = keep;
     });
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&no_sensor),
-        "--sample",
-        &s0,
-        "--out",
-        p(&out),
-    ]);
-    assert!(err.contains("sensor.json"), "{err}");
+    viz_fails(&no_sensor, &["--sample", &s0], &["sensor.json"]);
     let no_calib = case("no_calib", &|tb| {
         let cam = tb
             .sensor
@@ -715,142 +697,62 @@ fn custom_rigs_and_bad_tables_are_handled() {
             .clone();
         tb.calibrated_sensor.retain(|c| c.sensor_token != cam);
     });
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&no_calib),
-        "--sample",
-        &s0,
-        "--out",
-        p(&out),
-    ]);
-    assert!(err.contains("calibrated_sensor.json"), "{err}");
+    viz_fails(&no_calib, &["--sample", &s0], &["calibrated_sensor.json"]);
     // A table that is not JSON, an image that is missing, a LiDAR sweep that is cut short.
     let broken = t.0.join("broken");
     copy_dir(&base, &broken);
     let sd_json = broken.join(NUSCENES_VERSION).join("sample_data.json");
     let text = std::fs::read(&sd_json).unwrap();
     std::fs::write(&sd_json, &text[..text.len() / 2]).unwrap();
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&broken),
-        "--sample",
-        &s0,
-        "--out",
-        p(&out),
-    ]);
-    assert!(err.contains("sample_data.json"), "{err}");
+    viz_fails(&broken, &["--sample", &s0], &["sample_data.json"]);
     std::fs::write(&sd_json, &text).unwrap();
     let views = open(&broken).frame_views(0).unwrap();
     std::fs::remove_file(&views.cameras[3].image).unwrap();
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&broken),
-        "--sample",
-        &s0,
-        "--out",
-        p(&out),
-    ]);
     let img_name = views.cameras[3]
         .image
         .file_name()
         .unwrap()
         .to_str()
         .unwrap();
-    assert!(err.contains(img_name), "{err}");
+    viz_fails(&broken, &["--sample", &s0], &[img_name]);
     let pcd = std::fs::read(&views.lidar).unwrap();
     std::fs::write(&views.lidar, &pcd[..pcd.len() - 7]).unwrap();
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&broken),
-        "--sample",
-        &s0,
-        "--cameras",
-        "CAM_FRONT",
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains(".pcd.bin") && err.contains("20 bytes"),
-        "{err}"
+    viz_fails(
+        &broken,
+        &["--sample", &s0, "--cameras", "CAM_FRONT"],
+        &[".pcd.bin", "20 bytes"],
     );
     // Frame selection and grid files.
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&base),
-        "--sample",
-        "feedbeef",
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("sample.json") && err.contains("feedbeef"),
-        "{err}"
+    viz_fails(
+        &base,
+        &["--sample", "feedbeef"],
+        &["sample.json", "feedbeef"],
     );
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&base),
-        "--scene",
-        &scene,
-        "--index",
-        "7",
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("out of range") && err.contains("has 2"),
-        "{err}"
+    viz_fails(
+        &base,
+        &["--scene", &scene, "--index", "7"],
+        &["out of range", "has 2"],
     );
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&base),
-        "--scene",
-        "scene-9",
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("scene.json") && err.contains("scene-9"),
-        "{err}"
+    viz_fails(&base, &["--scene", "scene-9"], &["scene.json", "scene-9"]);
+    viz_fails(&base, &[], &["--sample", "--scene"]);
+    viz_fails(
+        &base,
+        &[
+            "--sample",
+            &s1,
+            "--labels",
+            p(&labels),
+            "--pred",
+            p(&labels),
+        ],
+        &["not both"],
     );
-    let err = fails(&["viz", "--nuscenes", p(&base), "--out", p(&out)]);
-    assert!(err.contains("--sample") && err.contains("--scene"), "{err}");
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&base),
-        "--sample",
-        &s1,
-        "--labels",
-        p(&labels),
-        "--pred",
-        p(&labels),
-        "--out",
-        p(&out),
-    ]);
-    assert!(err.contains("not both"), "{err}");
     let txt = t.0.join("grid.txt");
     std::fs::write(&txt, b"x").unwrap();
-    let err = fails(&[
-        "viz",
-        "--nuscenes",
-        p(&base),
-        "--sample",
-        &s1,
-        "--labels",
-        p(&txt),
-        "--out",
-        p(&out),
-    ]);
-    assert!(
-        err.contains("grid.txt") && err.contains("labels.npz"),
-        "{err}"
+    viz_fails(
+        &base,
+        &["--sample", &s1, "--labels", p(&txt)],
+        &["grid.txt", "labels.npz"],
     );
     assert!(!out.exists(), "no picture is written on an error");
     // --index without --scene, --image with --nuscenes: usage errors (clap, status 2).

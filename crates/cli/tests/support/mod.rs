@@ -92,6 +92,13 @@ pub fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
+/// Copies the file `from` to `to`, creating `to`'s folder.
+pub fn copy_file(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+    std::fs::copy(from, to)
+        .unwrap_or_else(|e| panic!("{} -> {}: {e}", from.display(), to.display()));
+}
+
 /// A very small SparseOcc++ on the kitti-small grid: `steps` steps, a checkpoint every
 /// `checkpoint_every`, training on sequence 00 and validating on `val` (160x64 images).
 pub fn tiny_config(steps: usize, checkpoint_every: usize, val: &[&str]) -> String {
