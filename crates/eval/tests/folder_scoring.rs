@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{counting_frames, with_sequences};
+use common::{counting_frames, gt_and_pred, with_sequences};
 use occ_data::formats::npy::npy_bytes;
 use occ_data::formats::occ3d::{read_labels_npz, write_labels_npz, Occ3dLabels};
 use occ_data::formats::semantic_kitti::{
@@ -90,8 +90,7 @@ fn semantic_kitti_folder_end_to_end() {
     };
     let map = LearningMap::semantic_kitti();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let gt_dir = TempDir::new("occ-eval", "kitti-gt");
-    let pred_dir = TempDir::new("occ-eval", "kitti-pred");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval", "kitti");
     let gt_paths = KittiPaths::new(&gt_dir.0);
     // Frames: the real sample's (sequence, frame) ids and invalid masks, plus synthetic labels.
     let mut expected_all = Evaluator::new(Protocol::SemanticKitti);
@@ -232,8 +231,7 @@ fn occ3d_folder_end_to_end() {
     let mut rng = ChaCha8Rng::seed_from_u64(33);
     let dims = [200usize, 200, 16];
     let n = dims.iter().product::<usize>();
-    let gt_dir = TempDir::new("occ-eval", "occ3d-gt");
-    let pred_dir = TempDir::new("occ-eval", "occ3d-pred");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval", "occ3d");
     let mut expected = Evaluator::new(Protocol::Occ3d);
     let mut expected_lidar = Evaluator::new(Protocol::Occ3d);
     let frames = [
@@ -450,8 +448,7 @@ fn real_occ3d_sample_scored_against_itself() {
 fn occ3d_sequences_and_ground_truth_shape() {
     let dims = [200usize, 200, 16];
     let n = dims.iter().product::<usize>();
-    let gt_dir = TempDir::new("occ-eval", "occ3d-seq-gt");
-    let pred_dir = TempDir::new("occ-eval", "occ3d-seq-pred");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval", "occ3d-seq");
     let write = |root: &Path, scene: &str, token: &str, dims: [usize; 3], v: u8| {
         let n: usize = dims.iter().product();
         let l = Occ3dLabels {

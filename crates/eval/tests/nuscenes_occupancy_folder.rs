@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{counting_frames, with_sequences};
+use common::{counting_frames, gt_and_pred, with_sequences};
 use occ_data::formats::nuscenes_occupancy::{write_sparse_occupancy, DIMS};
 use occ_eval::{score_nuscenes_occupancy_folder, EvalError, FolderOptions, Protocol};
 use occ_testdata::TempDir;
@@ -44,8 +44,7 @@ const NOISE: u8 = 255;
 
 #[test]
 fn nuscenes_occupancy_folder_matches_hand_computation() {
-    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt");
-    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval-nuscocc", "basic");
     // The ground truth sits below `GT/nuScenes-Occupancy/`, as in the OpenOccupancy download.
     let gt_base = gt_dir.0.join("nuScenes-Occupancy");
 
@@ -137,8 +136,7 @@ fn nuscenes_occupancy_folder_matches_hand_computation() {
 
 #[test]
 fn nuscenes_occupancy_missing_prediction_is_an_error() {
-    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-missing");
-    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-missing");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval-nuscocc", "missing");
     let g = grid(&[(idx(1, 2, 3), CAR)]);
     write_frame(&gt_dir.0, "s1", "lidar_a", &g);
     write_frame(&gt_dir.0, "s1", "lidar_b", &g);
@@ -183,8 +181,7 @@ fn nuscenes_occupancy_noise_is_ignored_in_gt_and_invalid_in_prediction() {
     let (a, n, e) = (idx(5, 5, 5), idx(6, 6, 6), idx(7, 7, 7));
     let gt = grid(&[(a, CAR), (n, NOISE)]);
     let score = |pred: &[u8]| {
-        let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-noise");
-        let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-noise");
+        let (gt_dir, pred_dir) = gt_and_pred("occ-eval-nuscocc", "noise");
         write_frame(&gt_dir.0, "s", "lidar", &gt);
         write_frame(&pred_dir.0, "s", "lidar", pred);
         score_nuscenes_occupancy_folder(&gt_dir.0, &pred_dir.0, &FolderOptions::default()).unwrap()
@@ -217,8 +214,7 @@ fn nuscenes_occupancy_noise_is_ignored_in_gt_and_invalid_in_prediction() {
 /// scored (so a scene without predictions may be left out), and an unknown scene is an error.
 #[test]
 fn nuscenes_occupancy_sequences_select_scenes() {
-    let gt_dir = TempDir::new("occ-eval-nuscocc", "gt-seq");
-    let pred_dir = TempDir::new("occ-eval-nuscocc", "pred-seq");
+    let (gt_dir, pred_dir) = gt_and_pred("occ-eval-nuscocc", "seq");
     let g = grid(&[(idx(1, 2, 3), CAR)]);
     write_frame(&gt_dir.0, "s1", "lidar_a", &g);
     write_frame(&gt_dir.0, "s2", "lidar_b", &g);

@@ -1,6 +1,7 @@
 //! Helpers shared by the occ-eval integration tests.
 
 use occ_eval::FolderOptions;
+use occ_testdata::TempDir;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Runs `score` with default options whose `on_frame` counts the frames it is called for: what
@@ -25,4 +26,13 @@ pub fn with_sequences<R>(names: &[&str], score: impl FnOnce(&FolderOptions) -> R
         sequences: Some(&names),
         ..Default::default()
     })
+}
+
+/// A fresh ground-truth folder and a fresh prediction folder, `<prefix>-<tag>-gt-…` and
+/// `<prefix>-<tag>-pred-…`.
+pub fn gt_and_pred(prefix: &str, tag: &str) -> (TempDir, TempDir) {
+    (
+        TempDir::new(prefix, &format!("{tag}-gt")),
+        TempDir::new(prefix, &format!("{tag}-pred")),
+    )
 }
