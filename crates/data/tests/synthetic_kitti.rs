@@ -96,6 +96,15 @@ struct Seq {
     tr: Mat4,
 }
 
+/// Sequence 00 generated with `cfg` into a fresh folder (removed when the returned `TempDir` is
+/// dropped), read back.
+fn generated_sequence(tag: &str, cfg: SynthConfig) -> (TempDir, Seq) {
+    let t = TempDir::new("sparseocc-synth", tag);
+    generate(&t.0, &cfg, &mut |_, _| {}).unwrap();
+    let s = read_seq(&t.0, "00");
+    (t, s)
+}
+
 fn read_seq(root: &Path, seq: &str) -> Seq {
     let meta = read_synthetic_meta(root)
         .unwrap()
@@ -225,9 +234,7 @@ fn files_read_back_and_are_mutually_consistent() {
 #[test]
 fn every_semantic_class_occurs_in_a_sequence() {
     for seed in [1u64, 2, 3] {
-        let t = TempDir::new("sparseocc-synth", &format!("classes-{seed}"));
-        generate(&t.0, &small_cfg(seed, 2, (32, 16)), &mut |_, _| {}).unwrap();
-        let s = read_seq(&t.0, "00");
+        let (_t, s) = generated_sequence(&format!("classes-{seed}"), small_cfg(seed, 2, (32, 16)));
         let mut count = [0u64; 256];
         for l in &s.labels {
             for &c in l {
@@ -272,10 +279,8 @@ fn rendered_pixels_show_the_class_of_the_visible_voxel() {
     //   strict: the pixel's own ray meets the voxel first (the pixel really shows this voxel);
     //   all:    every visible voxel (for ground voxels the centre pixel usually shows a nearer
     //           ground voxel, which may belong to another class at borders).
-    let t = TempDir::new("sparseocc-synth", "appearance");
     let (w, h) = (306, 92);
-    generate(&t.0, &small_cfg(5, 2, (w, h)), &mut |_, _| {}).unwrap();
-    let s = read_seq(&t.0, "00");
+    let (t, s) = generated_sequence("appearance", small_cfg(5, 2, (w, h)));
     let dir = t.0.join("sequences/00");
     let calib = read_calib(&dir.join("calib.txt")).unwrap();
     let view = calib.camera_view(w, h);
@@ -344,10 +349,8 @@ fn rendered_pixels_show_the_class_of_the_visible_voxel() {
 
 #[test]
 fn invalid_never_marks_a_visible_voxel() {
-    let t = TempDir::new("sparseocc-synth", "invalid");
     let (w, h) = (160, 48);
-    generate(&t.0, &small_cfg(8, 4, (w, h)), &mut |_, _| {}).unwrap();
-    let s = read_seq(&t.0, "00");
+    let (t, s) = generated_sequence("invalid", small_cfg(8, 4, (w, h)));
     let calib = read_calib(&t.0.join("sequences/00/calib.txt")).unwrap();
     let view = calib.camera_view(w, h);
     let lidar_from_cam = mat4_inverse(&view.cam_from_lidar).unwrap();
