@@ -103,6 +103,7 @@ pub fn propagate_anchors<B: occ_sparse::SparseConvBackend>(
 mod tests {
     use super::*;
     use burn::backend::NdArray;
+    use burn::prelude::*;
     use burn::tensor::TensorData;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
