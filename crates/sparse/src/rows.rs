@@ -170,8 +170,9 @@ pub fn sum_rows<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
     let blocks = n.div_ceil(SUM_BLOCK_ROWS);
     let pad = blocks * SUM_BLOCK_ROWS - n;
     let x = if pad > 0 {
-        let device = x.device();
-        Tensor::cat(vec![x, Tensor::zeros([pad, c], &device)], 0)
+        // Zero rows in x's own float type (a backend may hold several).
+        let zeros = x.clone().narrow(0, 0, 1).zeros_like().repeat_dim(0, pad);
+        Tensor::cat(vec![x, zeros], 0)
     } else {
         x
     };

@@ -184,10 +184,15 @@ fn row_plan(dest: Vec<u32>, n_out: usize) -> Arc<RowPlan> {
 
 /// `x` with zero rows appended up to `rows`.
 fn pad_rows<B: Backend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> {
-    let [r, c] = x.dims();
-    if r >= rows {
+    let r = x.dims()[0];
+    if r >= rows || r == 0 {
         return x;
     }
-    let device = x.device();
-    Tensor::cat(vec![x, Tensor::zeros([rows - r, c], &device)], 0)
+    // Zero rows in x's own float type (a backend may hold several).
+    let zeros = x
+        .clone()
+        .narrow(0, 0, 1)
+        .zeros_like()
+        .repeat_dim(0, rows - r);
+    Tensor::cat(vec![x, zeros], 0)
 }
