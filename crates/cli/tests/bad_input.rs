@@ -202,43 +202,47 @@ fn bad_input_table() {
     let bad_json = root.join("bad.json");
     std::fs::write(&bad_json, "{ not json").unwrap();
 
-    let infer_img = |name: &'static str, img: &Path, want: Vec<String>, o: &str| Case {
-        name,
-        args: os(&[
-            &"infer",
-            &"--config",
-            &cfg,
-            &"--random-weights",
+    // A command that must fail with status 1, naming `want` and leaving nothing at `absent`.
+    let fails =
+        |name: &'static str, args: Vec<OsString>, want: Vec<String>, absent: PathBuf| Case {
+            name,
+            args,
+            status: 1,
+            want,
+            absent: vec![absent],
+        };
+    // `infer` with random weights, `input` and `--out out/o`.
+    let infer = |input: &[&dyn AsRef<OsStr>], o: &str| {
+        let mut args = os(&[&"infer", &"--config", &cfg, &"--random-weights"]);
+        args.extend(os(input));
+        args.extend(os(&[&"--out", &out.join(o)]));
+        args
+    };
+    let summary = |o: &str| out.join(o).join("summary.json");
+    let infer_img = |name: &'static str, img: &Path, want: Vec<String>, o: &str| {
+        let input = infer(&[&"--image", &img, &"--calib", &calib], o);
+        fails(name, input, want, summary(o))
+    };
+    let infer_data = |name: &'static str, d: &Path, seqs: &str, want: Vec<String>, o: &str| {
+        let input = infer(
+            &[&"--data", &d, &"--sequences", &seqs, &"--render", &"0"],
+            o,
+        );
+        fails(name, input, want, summary(o))
+    };
+    let viz_image = |name: &'static str, image: &Path, want: Vec<String>, o: &str| {
+        let args = os(&[
+            &"viz",
+            &"--labels",
+            &gt_label,
             &"--image",
-            &img,
+            &image,
             &"--calib",
             &calib,
             &"--out",
             &out.join(o),
-        ]),
-        status: 1,
-        want,
-        absent: vec![out.join(o).join("summary.json")],
-    };
-    let infer_data = |name: &'static str, d: &Path, seqs: &str, want: Vec<String>, o: &str| Case {
-        name,
-        args: os(&[
-            &"infer",
-            &"--config",
-            &cfg,
-            &"--random-weights",
-            &"--data",
-            &d,
-            &"--sequences",
-            &seqs,
-            &"--render",
-            &"0",
-            &"--out",
-            &out.join(o),
-        ]),
-        status: 1,
-        want,
-        absent: vec![out.join(o).join("summary.json")],
+        ]);
+        fails(name, args, want, out.join(o))
     };
     let train_cfg = |name: &'static str, c: PathBuf, want: &[&str], o: &str| {
         let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
@@ -429,40 +433,18 @@ fn bad_input_table() {
             vec![s("05")],
             "i5",
         ),
-        Case {
-            name: "viz --image huge",
-            args: os(&[
-                &"viz",
-                &"--labels",
-                &gt_label,
-                &"--image",
-                &huge,
-                &"--calib",
-                &calib,
-                &"--out",
-                &out.join("v1.png"),
-            ]),
-            status: 1,
-            want: vec![s("huge.png"), s("100000x100000")],
-            absent: vec![out.join("v1.png")],
-        },
-        Case {
-            name: "viz --image contradicting its calibration",
-            args: os(&[
-                &"viz",
-                &"--labels",
-                &gt_label,
-                &"--image",
-                &small,
-                &"--calib",
-                &calib,
-                &"--out",
-                &out.join("v2.png"),
-            ]),
-            status: 1,
-            want: vec![s("small.png"), s("calibration")],
-            absent: vec![out.join("v2.png")],
-        },
+        viz_image(
+            "viz --image huge",
+            &huge,
+            vec![s("huge.png"), s("100000x100000")],
+            "v1.png",
+        ),
+        viz_image(
+            "viz --image contradicting its calibration",
+            &small,
+            vec![s("small.png"), s("calibration")],
+            "v2.png",
+        ),
         Case {
             name: "train on a dataset with a huge image",
             args: os(&[

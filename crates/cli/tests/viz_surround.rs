@@ -9,6 +9,7 @@ use occ_data::formats::occ3d::{read_labels_npz, FREE};
 use occ_data::image::{read_image, read_png};
 use occ_data::synthetic::classes::{nearest_class_by_chroma, nuscenes_class};
 use occ_data::synthetic::{generate, Preset, SynthConfig, NUSCENES_VERSION};
+use occ_geometry::mat::mat4_from_quat_translation;
 use occ_geometry::{project_with, Mat4};
 use occ_train::dataset::{DatasetFormat, SurroundDataset};
 use occ_viz::{project_points, ProjectedPoint};
@@ -114,33 +115,11 @@ fn f3(v: &serde_json::Value) -> [f64; 3] {
     [0, 1, 2].map(|i| v[i].as_f64().unwrap())
 }
 
-/// Rigid transform from a (w, x, y, z) quaternion and a translation.
+/// Rigid transform from a (w, x, y, z) quaternion and a translation (occ-geometry's formula, which
+/// its own tests check against rotation properties).
 fn pose(q: &serde_json::Value, t: &serde_json::Value) -> Mat4 {
-    let [w, x, y, z] = [0, 1, 2, 3].map(|i| q[i].as_f64().unwrap());
-    let n = (w * w + x * x + y * y + z * z).sqrt();
-    let (w, x, y, z) = (w / n, x / n, y / n, z / n);
-    let t = f3(t);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-            t[0],
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-            t[1],
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-            t[2],
-        ],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
+    let q = [0, 1, 2, 3].map(|i| q[i].as_f64().unwrap());
+    mat4_from_quat_translation(q, f3(t)).unwrap()
 }
 
 fn apply(m: &Mat4, p: [f64; 3]) -> [f64; 3] {

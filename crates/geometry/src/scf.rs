@@ -464,24 +464,22 @@ pub fn propagate(
     s_vertical: &[i32],
     dims: [usize; 3],
 ) -> Result<Propagation, ScfError> {
-    check_lengths(anchors.len(), s_planar, s_vertical)?;
-    let grid = PropGrid::new(dims)?;
-    let located = anchors
-        .iter()
-        .enumerate()
-        .map(|(index, &c)| {
-            grid.locate(c)
-                .map(|p| (0u64, p))
-                .ok_or_else(|| ScfError::AnchorOutOfBounds {
-                    index,
-                    coord: c.to_vec(),
-                    dims,
-                })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let keys = propagate_keys(&grid, &located, s_planar, s_vertical);
+    // One batch element of the batched propagation; errors name the anchor as given, `[x, y, z]`.
+    let batched: Vec<[i32; 4]> = anchors.iter().map(|&[x, y, z]| [0, x, y, z]).collect();
+    let out = propagate_batched(&batched, s_planar, s_vertical, dims).map_err(|e| match e {
+        ScfError::AnchorOutOfBounds { index, coord, dims } => ScfError::AnchorOutOfBounds {
+            index,
+            coord: coord[1..].to_vec(),
+            dims,
+        },
+        e => e,
+    })?;
     Ok(Propagation {
-        new_voxels: keys.into_iter().map(|k| grid.decode(k).1).collect(),
+        new_voxels: out
+            .new_voxels
+            .into_iter()
+            .map(|[_, x, y, z]| [x, y, z])
+            .collect(),
     })
 }
 

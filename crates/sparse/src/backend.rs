@@ -553,33 +553,63 @@ impl<B: SparseConvBackend> Backward<B, 2> for SparseConvBackwardOp {
     }
 }
 
-/// Backward of the row scatter-add: `dv = dout[dest]`.
-#[derive(Debug)]
-struct ScatterRowsBackwardOp;
+/// The two row ops of [`RowPlan`], each the adjoint of the other.
+#[derive(Debug, Clone, Copy)]
+enum RowOp {
+    /// `out[r] = Σ_{h : dest[h] = r} x[h]`
+    ScatterAdd,
+    /// `out[h] = x[dest[h]]`
+    Gather,
+}
 
-impl<B: SparseConvBackend> Backward<B, 1> for ScatterRowsBackwardOp {
-    type State = Arc<RowPlan>;
+impl RowOp {
+    fn apply<B: SparseConvBackend>(self, x: FloatTensor<B>, plan: Arc<RowPlan>) -> FloatTensor<B> {
+        match self {
+            RowOp::ScatterAdd => B::scatter_add_rows(x, plan),
+            RowOp::Gather => B::gather_rows(x, plan),
+        }
+    }
 
-    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let dout = grads.consume::<B>(&ops.node);
-        if let Some(node) = &ops.parents[0] {
-            grads.register::<B>(node.id, B::gather_rows(dout, ops.state));
+    fn adjoint(self) -> Self {
+        match self {
+            RowOp::ScatterAdd => RowOp::Gather,
+            RowOp::Gather => RowOp::ScatterAdd,
         }
     }
 }
 
-/// Backward of the row gather: `dx = scatter_add(dout)`.
+/// Backward of a row op: its adjoint applied to the output gradient (the scatter's backward is
+/// `dv = dout[dest]`, the gather's `dx = scatter_add(dout)`).
 #[derive(Debug)]
-struct GatherRowsBackwardOp;
+struct RowOpBackward(RowOp);
 
-impl<B: SparseConvBackend> Backward<B, 1> for GatherRowsBackwardOp {
+impl<B: SparseConvBackend> Backward<B, 1> for RowOpBackward {
     type State = Arc<RowPlan>;
 
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dout = grads.consume::<B>(&ops.node);
         if let Some(node) = &ops.parents[0] {
-            grads.register::<B>(node.id, B::scatter_add_rows(dout, ops.state));
+            grads.register::<B>(node.id, self.0.adjoint().apply::<B>(dout, ops.state));
         }
+    }
+}
+
+/// A row op on the autodiff backend: the inner backend's op, tracked with its adjoint.
+fn autodiff_row_op<B: SparseConvBackend, C: CheckpointStrategy>(
+    op: RowOp,
+    x: FloatTensor<Autodiff<B, C>>,
+    plan: Arc<RowPlan>,
+) -> FloatTensor<Autodiff<B, C>> {
+    match RowOpBackward(op)
+        .prepare::<C>([x.node.clone()])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let out = op.apply::<B>(x.primitive, plan.clone());
+            prep.finish(plan, out)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(op.apply::<B>(x.primitive, plan)),
     }
 }
 
@@ -587,31 +617,11 @@ impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff
     const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
 
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
-        match ScatterRowsBackwardOp
-            .prepare::<C>([values.node.clone()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::scatter_add_rows(values.primitive, plan.clone());
-                prep.finish(plan, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::scatter_add_rows(values.primitive, plan)),
-        }
+        autodiff_row_op::<B, C>(RowOp::ScatterAdd, values, plan)
     }
 
     fn gather_rows(x: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
-        match GatherRowsBackwardOp
-            .prepare::<C>([x.node.clone()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::gather_rows(x.primitive, plan.clone());
-                prep.finish(plan, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::gather_rows(x.primitive, plan)),
-        }
+        autodiff_row_op::<B, C>(RowOp::Gather, x, plan)
     }
 
     fn sparse_conv(

@@ -252,6 +252,35 @@ pub(super) fn write_scene(
                 next: prev_next(Some(i + 1), &sample_tok),
                 scene_token: scene_token.clone(),
             });
+            // A sensor's key-frame record: its ego pose and its `sample_data` row.
+            let key_frame_record = |tables: &mut Tables,
+                                    ch: &str,
+                                    calib: &str,
+                                    fileformat: &str,
+                                    [height, width]: [u32; 2],
+                                    filename: String| {
+                let ep = token(seed, &format!("ego_pose:{name}:{ch}:{i}"));
+                tables.ego_pose.push(EgoPose {
+                    token: ep.clone(),
+                    timestamp: ts(i),
+                    rotation: [1.0, 0.0, 0.0, 0.0],
+                    translation: ego,
+                });
+                tables.sample_data.push(SampleData {
+                    token: sd_tok(ch, i),
+                    sample_token: stoken.clone(),
+                    ego_pose_token: ep,
+                    calibrated_sensor_token: calib.to_string(),
+                    timestamp: ts(i),
+                    fileformat: fileformat.into(),
+                    is_key_frame: true,
+                    height,
+                    width,
+                    filename,
+                    prev: prev_next(i.checked_sub(1), &|j| sd_tok(ch, j)),
+                    next: prev_next(Some(i + 1), &|j| sd_tok(ch, j)),
+                });
+            };
             let frame_seed = derive_seed(scene.seed, &format!("frame:{i}"));
             for (ci, (ch, yaw, t)) in CAMERA_MOUNTS.iter().enumerate() {
                 let rig = CamRig {
@@ -278,28 +307,8 @@ pub(super) fn write_scene(
                     },
                 )?;
                 stats.wrote(&p);
-                let sdt = sd_tok(ch, i);
-                let ep = token(seed, &format!("ego_pose:{name}:{ch}:{i}"));
-                tables.ego_pose.push(EgoPose {
-                    token: ep.clone(),
-                    timestamp: ts(i),
-                    rotation: [1.0, 0.0, 0.0, 0.0],
-                    translation: ego,
-                });
-                tables.sample_data.push(SampleData {
-                    token: sdt,
-                    sample_token: stoken.clone(),
-                    ego_pose_token: ep,
-                    calibrated_sensor_token: calib_tokens[ci].clone(),
-                    timestamp: ts(i),
-                    fileformat: "png".into(),
-                    is_key_frame: true,
-                    height: h as u32,
-                    width: w as u32,
-                    filename: rel,
-                    prev: prev_next(i.checked_sub(1), &|j| sd_tok(ch, j)),
-                    next: prev_next(Some(i + 1), &|j| sd_tok(ch, j)),
-                });
+                let hw = [h as u32, w as u32];
+                key_frame_record(tables, ch, &calib_tokens[ci], "png", hw, rel);
             }
             let lidar_origin = [0, 1, 2].map(|a| ego[a] + LIDAR_IN_EGO_M[a]);
             let boxes = [&lidar_vis];
@@ -315,27 +324,7 @@ pub(super) fn write_scene(
             write_atomic(&p, &bytes)?;
             stats.wrote(&p);
             stats.lidar_points += s.points.len();
-            let ep = token(seed, &format!("ego_pose:{name}:{LIDAR_CHANNEL}:{i}"));
-            tables.ego_pose.push(EgoPose {
-                token: ep.clone(),
-                timestamp: ts(i),
-                rotation: [1.0, 0.0, 0.0, 0.0],
-                translation: ego,
-            });
-            tables.sample_data.push(SampleData {
-                token: sd_tok(LIDAR_CHANNEL, i),
-                sample_token: stoken.clone(),
-                ego_pose_token: ep,
-                calibrated_sensor_token: lidar_calib.clone(),
-                timestamp: ts(i),
-                fileformat: "pcd".into(),
-                is_key_frame: true,
-                height: 0,
-                width: 0,
-                filename: rel,
-                prev: prev_next(i.checked_sub(1), &|j| sd_tok(LIDAR_CHANNEL, j)),
-                next: prev_next(Some(i + 1), &|j| sd_tok(LIDAR_CHANNEL, j)),
-            });
+            key_frame_record(tables, LIDAR_CHANNEL, &lidar_calib, "pcd", [0, 0], rel);
 
             let semantics: Vec<u8> = scene
                 .frame_classes(&world, i)
