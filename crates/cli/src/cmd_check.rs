@@ -4,12 +4,15 @@
 //!
 //! - sparse convolutions (submanifold 3x3x3, strided regular, transposed) forward, and the gradient
 //!   with respect to the input features and weights through autodiff;
-//! - the image encoder (ResNet + FPN), weights copied through a checkpoint file;
+//! - the image encoder (ResNet + FPN), weights copied through a checkpoint file; its convolutions
+//!   (forward, dx, dw, db) and its other ops (nearest upsampling, max pool, BatchNorm) one by one;
 //! - the DCA sampling op, forward and the gradients of its values, offsets, weights and gate;
 //! - the row scatter-add and gather of `occ_sparse::rows` (forward and gradients), column sums;
 //! - one SparseOcc++ forward pass (weights copied through a checkpoint file): the same voxels and
 //!   logits; then a second frame, counting the kernels compiled for it after the warm-up
 //!   (`compiles_after_warmup`, cubecl backends only);
+//! - one SparseOcc++ training step on a smaller grid: every loss term and parameter gradient, and,
+//!   where gradients differ, each kind of loss term back-propagated alone;
 //! - the sparse convolution throughput (submanifold 3x3x3, C = 64, driving-like input) there.
 //!
 //! Exits with an error when a difference exceeds the tolerance. On a CPU build it compares NdArray
@@ -42,8 +45,8 @@ pub struct CheckArgs {
     #[arg(long)]
     pub json: Option<std::path::PathBuf>,
     /// Kernels the shipped configuration may compile for a second frame after the warm-up before
-    /// the check fails. The goal is 0 (a stream of frames compiles nothing); CI allows the count
-    /// measured today so that a regression beyond it fails.
+    /// the check fails. The goal is 0 (a stream of frames compiles nothing); a gate may allow the
+    /// count measured so far, so that only a regression beyond it fails.
     #[arg(long, default_value_t = 0)]
     pub max_compiles_after_warmup: u64,
 }
@@ -477,8 +480,8 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     train_cfg.model.full_dims = grid.dims;
     // The anchor embeddings are sized by the grid: weights of their own, copied as above.
     let _ = std::fs::remove_file(tmp.with_extension("bin"));
-    // (burn initialises parameters lazily, so both sides load the file rather than one of them
-    // keeping the module it saved.)
+    // Both sides load the file: on the CPU, the module that was saved (a clone of it, rather)
+    // gave other losses than its loaded copy, so the saved module itself is not used.
     <Cpu as Backend>::seed(&cpu_dev, 6);
     train_cfg
         .model
