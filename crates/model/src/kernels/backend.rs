@@ -14,7 +14,9 @@
 //! Where a host kernel does not apply (a grouped convolution, tensors whose float type is not the
 //! backend's), the override falls back to the portable path, as the type-checking code before it did.
 
-use crate::kernels::conv2d_host::{bn_relu, conv_autodiff, conv_bn_host, conv_bn_portable};
+use crate::kernels::conv2d_host::{
+    bn_relu, conv_autodiff, conv_bn_host, conv_bn_portable, conv_forward_portable,
+};
 use crate::kernels::dca::{self, DcaSample};
 use crate::kernels::host_data::NdElem;
 use crate::kernels::{dca_host, rows_host};
@@ -83,12 +85,14 @@ pub trait ModelBackend: SparseConvBackend {
 
     /// `conv.forward(x)` on `Autodiff<Self, C>`, the convolution of
     /// [`ModelBackend::conv2d_bn`] in training (the BatchNorm and ReLU stay burn's). Default:
-    /// burn's `Conv2d::forward` through burn's autodiff.
+    /// burn's `Conv2d::forward` through burn's autodiff ([`conv_forward_portable`]: a strided 1x1
+    /// convolution as a subsampling and a stride-1 one, whose input gradient burn-cubecl 0.21
+    /// gets wrong).
     fn conv2d_autodiff<C: CheckpointStrategy>(
         conv: &Conv2d<Autodiff<Self, C>>,
         x: Tensor<Autodiff<Self, C>, 4>,
     ) -> Tensor<Autodiff<Self, C>, 4> {
-        conv.forward(x)
+        conv_forward_portable(conv, x)
     }
 
     /// [`ModelBackend::dca_sample`] on `Autodiff<Self, C>`. Default: the tensor-op composition
@@ -158,7 +162,7 @@ where
         conv: &Conv2d<Autodiff<Self, C>>,
         x: Tensor<Autodiff<Self, C>, 4>,
     ) -> Tensor<Autodiff<Self, C>, 4> {
-        conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv.forward(x))
+        conv_autodiff(conv, x.clone()).unwrap_or_else(|| conv_forward_portable(conv, x))
     }
 
     fn dca_sample_autodiff<C: CheckpointStrategy>(

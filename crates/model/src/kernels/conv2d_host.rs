@@ -27,7 +27,8 @@ use burn::nn::conv::Conv2d;
 use burn::nn::{BatchNorm, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::backend::Backend;
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Int, Tensor, TensorData};
 use rayon::prelude::*;
 
 /// `relu?(bn?(conv(x)))` — the composition of burn's `Conv2d::forward`, `BatchNorm::forward` and `relu`,
@@ -58,7 +59,45 @@ pub fn conv_bn_portable<B: Backend>(
     x: Tensor<B, 4>,
     apply_relu: bool,
 ) -> Tensor<B, 4> {
-    bn_relu(conv.forward(x), bn, apply_relu)
+    bn_relu(conv_forward_portable(conv, x), bn, apply_relu)
+}
+
+/// `conv.forward(x)` (burn's `Conv2d`), except for a strided 1x1 convolution without padding (the
+/// ResNet shortcut's downsampling), which is computed as the subsampled input `x[:, :, ::s_h, ::s_w]`
+/// (a `select` of rows and columns) through a stride-1 1x1 convolution: the same values, and a
+/// backward that avoids burn-cubecl 0.21's input gradient of strided convolutions. That gradient is
+/// a transposed convolution whose direct kernel bounds its loop over input rows by
+/// `kernel · dilation − stride`, an empty range when the kernel is smaller than the stride, so a
+/// 1x1 stride-2 convolution gets an all-zero input gradient on the cubecl backends (measured with
+/// `check-backend`'s `burn_conv2d_1x1_s2_*` cases on lavapipe; docs/gpu.md).
+///
+/// # Shapes
+/// - x: `[N, C_in, H, W]` → `[N, C_out, H_out, W_out]` (burn's output-size rule)
+pub fn conv_forward_portable<B: Backend>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    let [_, _, kh, kw] = conv.weight.dims();
+    if kh != 1 || kw != 1 || conv.stride == [1, 1] || padding_of(conv) != Some([0; 4]) {
+        return conv.forward(x);
+    }
+    let device = x.device();
+    let every = |x: Tensor<B, 4>, dim: usize, step: usize| {
+        let n = x.dims()[dim];
+        if step == 1 || n == 0 {
+            return x;
+        }
+        let idx: Vec<i64> = (0..n).step_by(step).map(|i| i as i64).collect();
+        let len = idx.len();
+        x.select(
+            dim,
+            Tensor::<B, 1, Int>::from_data(TensorData::new(idx, [len]), &device),
+        )
+    };
+    let x = every(every(x, 2, conv.stride[0]), 3, conv.stride[1]);
+    burn::tensor::module::conv2d(
+        x,
+        conv.weight.val(),
+        conv.bias.as_ref().map(|b| b.val()),
+        ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+    )
 }
 
 /// `relu?(bn?(y))` with burn's `BatchNorm` (its training statistics summed in two levels:
@@ -610,6 +649,93 @@ where
                     NdArray::<T>::float_from_data(TensorData::new(v, shape), &Default::default());
                 grads.register::<NdArray<T>>(parent.id, t);
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::module::Param;
+    use burn::nn::conv::Conv2dConfig;
+
+    type Ad = Autodiff<NdArray<f32>>;
+
+    /// [`conv_forward_portable`]'s strided 1x1 path against burn's `Conv2d` on NdArray (whose
+    /// backward is right on the CPU): forward and the gradients of input, weight and bias, at even
+    /// and odd sizes and unequal strides.
+    #[test]
+    fn strided_pointwise_conv_matches_burn_forward_and_backward() {
+        let device = Default::default();
+        let seq = |n: usize, a: f32| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i as f32 * a).sin() * 5.0).round() / 8.0)
+                .collect()
+        };
+        for (h, w, stride) in [
+            (8usize, 6usize, [2usize, 2usize]),
+            (7, 9, [2, 2]),
+            (7, 10, [2, 3]),
+        ] {
+            let run = |ours: bool| {
+                let mut conv = Conv2dConfig::new([3, 4], [1, 1])
+                    .with_stride(stride)
+                    .init::<Ad>(&device);
+                conv.weight = Param::from_tensor(Tensor::from_data(
+                    TensorData::new(seq(12, 0.9), [4, 3, 1, 1]),
+                    &device,
+                ));
+                conv.bias = Some(Param::from_tensor(Tensor::from_data(
+                    TensorData::new(seq(4, 1.7), [4]),
+                    &device,
+                )));
+                let x = Tensor::<Ad, 4>::from_data(
+                    TensorData::new(seq(2 * 3 * h * w, 0.3), [2, 3, h, w]),
+                    &device,
+                )
+                .require_grad();
+                let y = if ours {
+                    conv_forward_portable(&conv, x.clone())
+                } else {
+                    conv.forward(x.clone())
+                };
+                let r = Tensor::<Ad, 4>::from_data(
+                    TensorData::new(seq(y.shape().num_elements(), 1.1), y.dims()),
+                    &device,
+                );
+                let grads = (y.clone() * r).sum().backward();
+                let v = |t: Option<Tensor<NdArray<f32>, 4>>| {
+                    t.unwrap().into_data().to_vec::<f32>().unwrap()
+                };
+                (
+                    y.into_data().to_vec::<f32>().unwrap(),
+                    v(x.grad(&grads)),
+                    v(conv.weight.val().grad(&grads)),
+                    conv.bias
+                        .as_ref()
+                        .unwrap()
+                        .val()
+                        .grad(&grads)
+                        .unwrap()
+                        .into_data()
+                        .to_vec::<f32>()
+                        .unwrap(),
+                )
+            };
+            let (a, b) = (run(true), run(false));
+            let close = |p: &[f32], q: &[f32], what: &str| {
+                assert_eq!(p.len(), q.len(), "{what} {h}x{w} {stride:?}");
+                for (u, v) in p.iter().zip(q) {
+                    assert!(
+                        (u - v).abs() < 1e-5,
+                        "{what} {h}x{w} {stride:?}: {u} vs {v}"
+                    );
+                }
+            };
+            close(&a.0, &b.0, "forward");
+            close(&a.1, &b.1, "dx");
+            close(&a.2, &b.2, "dw");
+            close(&a.3, &b.3, "db");
         }
     }
 }
