@@ -283,6 +283,16 @@ impl<B: ModelBackend> ResBlock<B> {
     }
 }
 
+/// The stem of `resnet`: `maxpool(relu(bn1(conv1(images))))`, the input of `layer1`.
+///
+/// # Shapes
+/// - `images`: `[N, in_channels, H, W]` → `[N, base_width, ⌈H/4⌉, ⌈W/4⌉]`
+pub fn stem_forward<B: ModelBackend>(resnet: &ResNet<B>, images: Tensor<B, 4>) -> Tensor<B, 4> {
+    resnet
+        .maxpool
+        .forward(conv_bn(&resnet.conv1, Some(&resnet.bn1), images, true))
+}
+
 /// ResNet backbone (torchvision layout, no classifier). Build with [`ResNetConfig::init`].
 #[derive(Module, Debug)]
 pub struct ResNet<B: Backend> {
@@ -308,9 +318,7 @@ impl<B: ModelBackend> ResNet<B> {
     /// `images` `[N, in_channels, H, W]` → one feature map per `out_indices` entry, stage `i` of shape
     /// `[N, C_i, ⌈H/2^(i+2)⌉, ⌈W/2^(i+2)⌉]` (exact torchvision arithmetic for odd sizes).
     pub fn forward(&self, images: Tensor<B, 4>) -> Vec<Tensor<B, 4>> {
-        let mut x = self
-            .maxpool
-            .forward(conv_bn(&self.conv1, Some(&self.bn1), images, true));
+        let mut x = stem_forward(self, images);
         let last = self.out_indices.iter().copied().max().unwrap_or(0);
         let mut outs = Vec::with_capacity(self.out_indices.len());
         for (stage, layer) in self.stages().into_iter().enumerate() {

@@ -17,9 +17,7 @@ use burn::module::{Initializer, Module};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::tensor::backend::Backend;
-use burn::tensor::module::interpolate;
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
-use burn::tensor::Tensor;
+use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::encoder::backbone::{ResNet, ResNetConfig};
 use crate::error::ModelError;
@@ -127,11 +125,7 @@ impl<B: ModelBackend> Fpn<B> {
             .collect();
         for i in (1..laterals.len()).rev() {
             let [_, _, h, w] = laterals[i - 1].dims();
-            let up = interpolate(
-                laterals[i].clone(),
-                [h, w],
-                InterpolateOptions::new(InterpolateMode::Nearest).with_align_corners(false),
-            );
+            let up = resize_nearest(laterals[i].clone(), [h, w]);
             laterals[i - 1] = laterals[i - 1].clone() + up;
         }
         self.fpn_convs
@@ -140,6 +134,41 @@ impl<B: ModelBackend> Fpn<B> {
             .map(|(conv, x)| conv_bn(conv, None, x, false))
             .collect()
     }
+}
+
+/// Nearest-neighbour resize, source index `⌊dst · in / out⌋` on each axis (PyTorch's
+/// `F.interpolate(mode="nearest")`, which mmdet's FPN uses).
+///
+/// Built from burn ops whose backward autodiff derives (an integer factor, the FPN's usual 2x:
+/// reshape, broadcast, reshape, whose backward is a sum; any other size: `select` of rows and
+/// columns, whose backward is a scatter-add), not from burn's `interpolate`. Measured with
+/// `check-backend` on lavapipe: with burn's `interpolate` in the FPN, the training step's gradients
+/// of `lateral_convs.2` and of every backbone stage under it differed from the CPU reference; with
+/// this function they agree. burn's nearest backward alone agrees (`burn_interpolate_*` cases,
+/// including a channels-last incoming gradient), so the layout that trips it inside the model is
+/// not pinned down; burn-cubecl 0.21's kernel indexes its vectorised gradient with element
+/// offsets, which is one candidate (docs/gpu.md).
+///
+/// # Shapes
+/// - `x`: `[N, C, H_in, W_in]` → `[N, C, h, w]`
+pub fn resize_nearest<B: Backend>(x: Tensor<B, 4>, [h, w]: [usize; 2]) -> Tensor<B, 4> {
+    let [n, c, hi, wi] = x.dims();
+    if (hi, wi) == (h, w) {
+        return x;
+    }
+    if hi > 0 && wi > 0 && h % hi == 0 && w % wi == 0 {
+        let (sh, sw) = (h / hi, w / wi);
+        return x
+            .reshape([n, c, hi, 1, wi, 1])
+            .expand([n, c, hi, sh, wi, sw])
+            .reshape([n, c, h, w]);
+    }
+    let device = x.device();
+    let index = |out: usize, inp: usize| {
+        let idx: Vec<i64> = (0..out).map(|d| (d * inp / out) as i64).collect();
+        Tensor::<B, 1, Int>::from_data(TensorData::new(idx, [out]), &device)
+    };
+    x.select(2, index(h, hi)).select(3, index(w, wi))
 }
 
 /// Image encoder configuration: a [`ResNetConfig`] backbone and an [`FpnConfig`] neck over the
@@ -285,6 +314,66 @@ mod tests {
                         "level {l} ({y},{x}): {g} vs {want}"
                     );
                 }
+            }
+        }
+    }
+
+    /// [`resize_nearest`] against burn's `interpolate(Nearest)` on NdArray (correct on the CPU),
+    /// forward and the gradient of `Σ y ⊙ r`, at an integer factor, an odd size, a downsampling and
+    /// unequal factors per axis.
+    #[test]
+    fn resize_nearest_matches_burn_interpolate_forward_and_backward() {
+        use burn::backend::Autodiff;
+        use burn::tensor::module::interpolate;
+        use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+        type Ad = Autodiff<Be>;
+        let device = Default::default();
+        let seq = |n: usize, a: f32| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i as f32 * a).sin() * 3.0).round() / 4.0)
+                .collect()
+        };
+        for (src, dst) in [
+            ([4usize, 13usize], [8usize, 26usize]),
+            ([5, 7], [9, 13]),
+            ([6, 8], [3, 5]),
+            ([3, 4], [9, 6]),
+            ([3, 4], [3, 4]),
+        ] {
+            let run = |ours: bool| {
+                let x = Tensor::<Ad, 4>::from_data(
+                    TensorData::new(seq(2 * 3 * src[0] * src[1], 0.7), [2, 3, src[0], src[1]]),
+                    &device,
+                )
+                .require_grad();
+                let y = if ours {
+                    resize_nearest(x.clone(), dst)
+                } else {
+                    interpolate(
+                        x.clone(),
+                        dst,
+                        InterpolateOptions::new(InterpolateMode::Nearest),
+                    )
+                };
+                let r = Tensor::<Ad, 4>::from_data(
+                    TensorData::new(seq(2 * 3 * dst[0] * dst[1], 1.3), [2, 3, dst[0], dst[1]]),
+                    &device,
+                );
+                let grads = (y.clone() * r).sum().backward();
+                let dx = x.grad(&grads).unwrap();
+                (
+                    y.into_data().to_vec::<f32>().unwrap(),
+                    dx.into_data().to_vec::<f32>().unwrap(),
+                )
+            };
+            let (y, dx) = run(true);
+            let (y_ref, dx_ref) = run(false);
+            assert_eq!(y, y_ref, "forward {src:?} -> {dst:?}");
+            for (a, b) in dx.iter().zip(&dx_ref) {
+                assert!(
+                    (a - b).abs() < 1e-5,
+                    "backward {src:?} -> {dst:?}: {a} vs {b}"
+                );
             }
         }
     }
