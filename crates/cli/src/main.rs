@@ -55,7 +55,7 @@ enum Cmd {
     Infer(cmd_infer::InferArgs),
     /// Latency, FPS, peak memory and active voxels of the models side by side; memory scan.
     Bench(cmd_bench::BenchArgs),
-    /// Check this build's backend (CUDA) against the CPU reference on sparse convs and the encoder.
+    /// Check this build's backend (CUDA or WebGPU) against the CPU reference: sparse convs, the encoder, a SparseOcc++ forward pass and training step.
     CheckBackend(cmd_check::CheckArgs),
     /// Render voxel grids (and camera overlays) to PNG, export PLY; `--nuscenes`: a surround-camera
     /// frame with the LiDAR points and voxels projected into every camera.
