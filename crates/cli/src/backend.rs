@@ -118,8 +118,19 @@ mod compile_count {
                 let msg = record.args().to_string();
                 if MARKS.iter().any(|m| msg.starts_with(m)) {
                     COMPILES.fetch_add(1, Ordering::SeqCst);
-                    if std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some() {
-                        eprintln!("{}", msg.lines().take(2).collect::<Vec<_>>().join(" "));
+                    match std::env::var("SPARSEOCC_LOG_COMPILES").as_deref() {
+                        // The kernel's name and id (its configuration), not its source.
+                        Ok("full") => eprintln!(
+                            "{}",
+                            msg.lines()
+                                .take_while(|l| !l.starts_with("source:"))
+                                .collect::<Vec<_>>()
+                                .join("\n")
+                        ),
+                        Ok(_) => {
+                            eprintln!("{}", msg.lines().take(2).collect::<Vec<_>>().join(" "))
+                        }
+                        Err(_) => {}
                     }
                     return;
                 }
@@ -137,7 +148,10 @@ mod compile_count {
     pub fn install() {
         let mut config = CubeClRuntimeConfig::from_current_dir().override_from_env();
         let logger = &mut config.compilation.logger;
-        if matches!(logger.level, CompilationLogLevel::Disabled) {
+        if std::env::var("SPARSEOCC_LOG_COMPILES").as_deref() == Ok("full") {
+            // Each kernel's id (its whole configuration) in the log, to tell why one recompiles.
+            logger.level = CompilationLogLevel::Full;
+        } else if matches!(logger.level, CompilationLogLevel::Disabled) {
             logger.level = CompilationLogLevel::Basic;
         }
         logger.log = Some(LogCrateLevel::Info);

@@ -457,6 +457,9 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     let first = model.forward(&tiny_batch(frame(21), None, &dev))?;
     let _ = to_vec(first.logits);
     let warm = backend::settled_kernel_compilations();
+    if std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some() {
+        eprintln!("-- warm-up done: kernels compiled from here on are counted --");
+    }
     let t0 = Instant::now();
     let second = model.forward(&tiny_batch(frame(22), None, &dev))?;
     let _ = to_vec(second.logits);
@@ -612,7 +615,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     if let Some(c) = compiles_after_warmup.filter(|&c| c > args.max_compiles_after_warmup) {
         bail!(
             "{}: {c} kernel(s) compiled for a second frame after the warm-up, more than the {} \
-             allowed (set SPARSEOCC_LOG_COMPILES=1 to list them)",
+             allowed (set SPARSEOCC_LOG_COMPILES=1 to list them, =full for their ids)",
             backend::describe(),
             args.max_compiles_after_warmup
         );

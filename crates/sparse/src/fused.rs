@@ -1,7 +1,7 @@
 //! Fused gather → multiply → scatter-add for one kernel offset, f32 on x86-64 with AVX2 + FMA.
 //!
 //! The blocked path of [`crate::host::conv_forward`] copies the input rows of each offset's pairs into
-//! a buffer, multiplies it with `matrixmultiply`, and adds the product rows into the output block: two
+//! a buffer, multiplies it with a GEMM, and adds the product rows into the output block: two
 //! extra passes over `pairs × C` values and GEMM calls of a few dozen rows each. Here a register
 //! tile of 4 pairs × 16 output channels is accumulated straight from the input rows (read in place
 //! through the pair indices) against the offset's weight slice packed `[C_in, C_out]` (16 KB at

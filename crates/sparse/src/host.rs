@@ -3,8 +3,8 @@
 //! Output rows are split into blocks processed in parallel (rayon); each block owns its output rows, so
 //! there is no write conflict and no atomics. Inside a block, for every kernel offset, the input rows
 //! paired with the block's outputs are gathered into a contiguous buffer, multiplied by that offset's
-//! weight slice with `matrixmultiply`'s GEMM, and added into the block. The weight is read in place
-//! through strides (no transposed copy).
+//! weight slice with a GEMM ([`HostFloat::gemm`], the `gemm` crate), and added into the block. The
+//! weight is read in place through strides (no transposed copy).
 
 use crate::kernel_map::{KernelMap, OutputPairs};
 use rayon::prelude::*;
@@ -73,7 +73,8 @@ impl HostFloat for f32 {
         rsc: isize,
         csc: isize,
     ) {
-        matrixmultiply::sgemm(m, k, n, 1.0, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+        // SAFETY: forwarded contract.
+        unsafe { gemm_strided(m, k, n, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc) }
     }
     fn zero() -> Self {
         0.0
@@ -110,13 +111,79 @@ impl HostFloat for f64 {
         rsc: isize,
         csc: isize,
     ) {
-        matrixmultiply::dgemm(m, k, n, 1.0, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+        // SAFETY: forwarded contract.
+        unsafe { gemm_strided(m, k, n, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc) }
     }
     fn zero() -> Self {
         0.0
     }
     fn one() -> Self {
         1.0
+    }
+}
+
+/// `C = A B + beta C` through the `gemm` crate, for f32 and f64. Called from inside a rayon job
+/// (the blocked host loops, one block per job) it runs on the calling thread; called from outside
+/// (one large product, e.g. an image convolution's) it splits the product over rayon's pool.
+///
+/// Not `matrixmultiply`, measured on the 2-core development machine (BENCHMARKS.md, "host GEMM"):
+/// its own thread pool competes with rayon's when called from rayon jobs (a `[512, 128] x
+/// [128, 128]` block ran at 89 GFLOP/s, 133 with that pool off), and it packs every operand on
+/// every call; `gemm` ran the same blocks at 174 GFLOP/s and a 2048³ product at 213 against 183.
+///
+/// # Safety
+/// Pointers and strides must describe valid `m x k`, `k x n`, `m x n` matrices; `c` is not read
+/// when `beta` is zero.
+#[allow(clippy::too_many_arguments)]
+unsafe fn gemm_strided<T: HostFloat + PartialEq>(
+    m: usize,
+    k: usize,
+    n: usize,
+    a: *const T,
+    rsa: isize,
+    csa: isize,
+    b: *const T,
+    rsb: isize,
+    csb: isize,
+    beta: T,
+    c: *mut T,
+    rsc: isize,
+    csc: isize,
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    let parallelism = if rayon::current_thread_index().is_some() {
+        gemm::Parallelism::None
+    } else {
+        gemm::Parallelism::Rayon(0)
+    };
+    // gemm's convention: dst = alpha·dst + beta·lhs·rhs, dst read only when asked; strides are
+    // given column stride first.
+    let read_dst = beta != T::zero();
+    // SAFETY: forwarded contract (same matrices, strides in gemm's order).
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            c,
+            csc,
+            rsc,
+            read_dst,
+            a,
+            csa,
+            rsa,
+            b,
+            csb,
+            rsb,
+            beta,
+            T::one(),
+            false,
+            false,
+            false,
+            parallelism,
+        )
     }
 }
 
@@ -230,7 +297,7 @@ fn by_output_pays(map: &KernelMap) -> bool {
 /// `C_in·C_out` ≤ 8192), a map with few pairs per output row runs output-major
 /// ([`conv_forward_by_output`]), others offset-major with the fused gather-multiply-scatter kernel
 /// for every offset whose pairs are not the identity; without them every offset goes through a
-/// gathered buffer, `matrixmultiply` GEMM and a scatter-add ([`conv_forward_gemm`]).
+/// gathered buffer, a GEMM and a scatter-add ([`conv_forward_gemm`]).
 pub fn conv_forward<F: HostFloat>(x: &[F], w: &[F], wv: WeightView, map: &KernelMap) -> Vec<F> {
     match F::fused_plan(w, wv) {
         Some(p) if by_output_pays(map) => forward_by_output(x, &p, wv, map),

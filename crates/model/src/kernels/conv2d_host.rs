@@ -9,7 +9,7 @@
 //! [`ModelBackend::conv2d_bn`], whose burn-ndarray override (inference, [`conv_bn_host`]) folds the BN's `gamma / sqrt(var + eps)` is folded into the convolution
 //! weight and its shift into the bias (the standard inference-time fusion), the input is unfolded into
 //! a `[C_in·k_h·k_w, H_out·W_out]` matrix (skipped for 1x1 stride-1 convolutions, whose input already
-//! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with `matrixmultiply` on all
+//! is that matrix) and multiplied by the `[C_out, C_in·k_h·k_w]` weight with the host GEMM (`occ_sparse::host::HostFloat::gemm`) on all
 //! cores.
 //!
 //! On the CPU training backend (`Autodiff<NdArray>`) the convolution alone (BatchNorm stays burn's,

@@ -413,8 +413,10 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
         };
         let grid = batch.grid.downsampled(LEVEL_FACTORS[r]);
         let pos = self.pos.encode(&coords, dims, &device);
+        crate::profile::trace_mark("anchors position encoding", &pos);
         let hits = project_queries(&coords, &grid, &batch.cameras, batch.image_hw())?;
         let gate = combined_gate(depth, oracle, &hits, grid.voxel_size_m, &device)?;
+        crate::profile::trace_mark("anchors projection into the views", &pos);
         let x = stage
             .dca
             .forward_gated(feats, pos.clone(), &hits, images, strides, gate)?;
@@ -432,6 +434,7 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
             None => x,
         };
         let logits = stage.score.forward(x.clone());
+        crate::profile::trace_mark("anchors score head", &logits);
         Ok((
             x,
             LevelPrediction {
@@ -505,6 +508,7 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
                     } else {
                         x.select(0, index_tensor::<B>(&kept_u32, &device))
                     };
+                    crate::profile::trace_mark("anchors top-k", &kept_feats);
                     let kept_coords: Vec<Coord> = kept.iter().map(|&i| pred.coords[i]).collect();
                     pred.kept = kept;
                     levels.push(pred);
@@ -542,6 +546,7 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
                         kept_feats.select(0, index_tensor::<B>(&parent_rows, &device))
                             + self.child_embed[r].val().repeat_dim(0, k)
                     };
+                    crate::profile::trace_mark("anchors split", &feats);
                     coords = child_coords;
                 }
                 Err(ModelError::Config("anchors: unreachable level".into()))

@@ -364,10 +364,15 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
     /// The sampling op's inputs: offsets and weights predicted from the query, values projected.
     fn sample_inputs<'a>(&self, inputs: DcaInputs<'a, B>) -> DcaSample<'a, B> {
         let (offsets, weights) = self.sampling(inputs.query);
+        crate::profile::trace_mark("dca offsets and weights", &weights);
+        let values = self.value_maps(inputs.feats);
+        if let Some(v) = values.last() {
+            crate::profile::trace_mark("dca value maps", v);
+        }
         DcaSample {
             hits: inputs.hits,
             strides: inputs.strides,
-            values: self.value_maps(inputs.feats),
+            values,
             offsets,
             weights,
             gate: inputs.gate,
@@ -534,11 +539,15 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
             &self.norm1,
             feats + crate::profile::row_linear(&self.output_proj, attn),
         );
+        crate::profile::trace_mark("dca output projection and norm", &x);
         let y = crate::profile::row_linear(
             &self.ffn2,
             crate::profile::row_linear_relu(&self.ffn1, x.clone()),
         );
-        Ok(B::row_layer_norm(&self.norm2, x + y))
+        crate::profile::trace_mark("dca ffn", &y);
+        let out = B::row_layer_norm(&self.norm2, x + y);
+        crate::profile::trace_mark("dca residual and norm", &out);
+        Ok(out)
     }
 }
 
