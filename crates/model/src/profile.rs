@@ -186,9 +186,12 @@ pub fn add_conv2d(weight_dims: [usize; 4], out_elements: usize) {
 
 /// `lin.forward(x)`, counting its `rows * d_in * d_out` multiply-adds (the bias is not a MAC).
 #[inline]
-pub fn linear<B: Backend, const D: usize>(lin: &Linear<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+pub fn linear<B: occ_sparse::SparseConvBackend, const D: usize>(
+    lin: &Linear<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
     count_linear(lin, &x);
-    lin.forward(x)
+    crate::kernels::linear_bucketed(lin, x, B::ROW_BUCKET)
 }
 
 /// [`linear`] through the backend's [`ModelBackend::row_linear`] (on the CPU a host GEMM with the
@@ -267,6 +270,15 @@ pub fn start() {
     });
 }
 
+/// Waits until `done` (and everything queued before it on its device) is computed: the backend's
+/// own sync, which on the cubecl backends drains the fusion stream and waits for the device. Not a
+/// reduction of `done`, whose kernel configuration (cubecl's shared sum) follows the element count
+/// and would compile anew for every frame's voxel count.
+fn sync<B: Backend, const D: usize>(done: &Tensor<B, D>) {
+    // An error here is the device's and shows again on the next read of a result.
+    let _ = B::sync(&done.device());
+}
+
 /// Ends `stage`: synchronises on `done` and records the milliseconds since the last mark.
 pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
     if capturing() {
@@ -276,10 +288,7 @@ pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
     if !on && !trace() {
         return;
     }
-    if done.shape().num_elements() > 0 {
-        let s: f32 = done.clone().sum().into_scalar().elem();
-        std::hint::black_box(s);
-    }
+    sync(done);
     if trace() {
         let now = Instant::now();
         let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
@@ -341,10 +350,7 @@ pub fn trace_mark<B: Backend, const D: usize>(name: &str, done: &Tensor<B, D>) {
     if !trace() {
         return;
     }
-    if done.shape().num_elements() > 0 {
-        let s: f32 = done.clone().sum().into_scalar().elem();
-        std::hint::black_box(s);
-    }
+    sync(done);
     let now = Instant::now();
     let since = TRACE_CLOCK.with(|c| c.replace(Some(now)));
     let ms = since.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
