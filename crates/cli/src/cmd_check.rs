@@ -11,8 +11,12 @@
 //! - the DCA sampling op, forward and the gradients of its values, offsets, weights and gate;
 //! - the row scatter-add and gather of `occ_sparse::rows` (forward and gradients), column sums;
 //! - one SparseOcc++ forward pass (weights copied through a checkpoint file): the same voxels and
-//!   logits; then a second frame, counting the kernels compiled for it after the warm-up
-//!   (`compiles_after_warmup`, cubecl backends only);
+//!   logits; then the compile count of the shipped configuration (cubecl backends only): a first
+//!   frame run twice (the warm-up: burn-fusion's second pass over the same operations can compile a
+//!   few kernels, `compiles.same_frame_again`), then `--frames - 1` frames of other images, each
+//!   with its own voxel count, whose counts are `compiles.new_frames` (the first of them is
+//!   `compiles_after_warmup`, which must not exceed `--max-compiles-after-warmup`);
+//!   `--compiles-only` runs this part alone;
 //! - one SparseOcc++ training step on a smaller grid: every loss term and parameter gradient, and,
 //!   where gradients differ, each kind of loss term back-propagated alone, and where the image
 //!   encoder's differ, its backward cut apart (whole, backbone, neck, each residual block alone);
@@ -62,6 +66,13 @@ pub struct CheckArgs {
     /// count measured so far, so that only a regression beyond it fails.
     #[arg(long, default_value_t = 0)]
     pub max_compiles_after_warmup: u64,
+    /// Frames of the compile count (the first warms up; `compiles_after_warmup` is the second's
+    /// count, `compiles_per_frame` lists every one after the first).
+    #[arg(long, default_value_t = 2)]
+    pub frames: usize,
+    /// Run the compile count alone (no comparison with the reference).
+    #[arg(long)]
+    pub compiles_only: bool,
 }
 
 fn lcg(seed: u64) -> impl FnMut() -> f32 {
@@ -162,6 +173,19 @@ fn count_panics() {
 pub fn run(args: &CheckArgs) -> Result<()> {
     count_panics();
     let dev = backend::device();
+    if args.compiles_only {
+        let compiles = compile_counts(&dev, args.frames)?;
+        let after_warmup = compiles.new_frames.first().copied().flatten();
+        if let Some(p) = &args.json {
+            crate::util::write_json(
+                p,
+                &serde_json::json!({"device": backend::describe(),
+                    "compiles_after_warmup": after_warmup, "compiles": compiles,
+                    "kernel_compilations": backend::kernel_compilations()}),
+            )?;
+        }
+        return check_compiles(after_warmup, args);
+    }
     let cpu_dev = Default::default();
     let coords = scene();
     let n = coords.len();
@@ -460,31 +484,8 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         "logits_beyond_tolerance": beyond, "stages": stage_cases,
         "finite": finite, "first_call_ms": first_ms}),
     );
-    // The compile count: the shipped configuration (anchors pruned, so each frame has its own
-    // voxel count), one frame to warm up, then another.
-    let default_cfg =
-        occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
-    let model = default_cfg.model.init::<Infer>(&dev)?;
-    let first = model.forward(&tiny_batch(frame(21), None, &dev))?;
-    let _ = to_vec(first.logits);
-    let warm = backend::settled_kernel_compilations();
-    if std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some() {
-        eprintln!("-- warm-up done: kernels compiled from here on are counted --");
-    }
-    let t0 = Instant::now();
-    let second = model.forward(&tiny_batch(frame(22), None, &dev))?;
-    let _ = to_vec(second.logits);
-    let second_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let compiles_after_warmup = match (warm, backend::settled_kernel_compilations()) {
-        (Some(a), Some(b)) => Some(b - a),
-        _ => None,
-    };
-    eprintln!(
-        "shipped configuration, second frame: {} voxels (first {}), {second_ms:.1} ms, kernels compiled: {}",
-        second.coords.len(),
-        first.coords.len(),
-        compiles_after_warmup.map_or("n/a (CPU backend)".to_string(), |c| c.to_string())
-    );
+    let compiles = compile_counts(&dev, args.frames)?;
+    let compiles_after_warmup = compiles.new_frames.first().copied().flatten();
 
     // One SparseOcc++ training step (forward with labels, the losses, backward) against the
     // reference: the loss and the gradient of every trainable parameter, with the same weights on a
@@ -606,6 +607,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
             p,
             &serde_json::json!({"device": backend::describe(), "tolerance": args.tol, "worst": worst,
                 "compiles_after_warmup": compiles_after_warmup,
+                "compiles": compiles,
                 "panics": PANICS.load(std::sync::atomic::Ordering::SeqCst),
                 "kernel_compilations": backend::kernel_compilations(), "results": results}),
         )?;
@@ -623,14 +625,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
             backend::describe()
         );
     }
-    if let Some(c) = compiles_after_warmup.filter(|&c| c > args.max_compiles_after_warmup) {
-        bail!(
-            "{}: {c} kernel(s) compiled for a second frame after the warm-up, more than the {} \
-             allowed (set SPARSEOCC_LOG_COMPILES=1 to list them, =full for their ids)",
-            backend::describe(),
-            args.max_compiles_after_warmup
-        );
-    }
+    check_compiles(compiles_after_warmup, args)?;
     if worst > args.tol {
         bail!(
             "{}: differs from the NdArray reference by {worst:.2e} (> {:.0e})",
@@ -643,6 +638,76 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         backend::describe()
     );
     Ok(())
+}
+
+/// Fails when the second frame compiled more kernels than `--max-compiles-after-warmup` allows.
+fn check_compiles(compiles_after_warmup: Option<u64>, args: &CheckArgs) -> Result<()> {
+    if let Some(c) = compiles_after_warmup.filter(|&c| c > args.max_compiles_after_warmup) {
+        bail!(
+            "{}: {c} kernel(s) compiled for a second frame after the warm-up, more than the {} \
+             allowed (set SPARSEOCC_LOG_COMPILES=1 to list them, =full for their ids)",
+            backend::describe(),
+            args.max_compiles_after_warmup
+        );
+    }
+    Ok(())
+}
+
+/// Kernels compiled by the shipped configuration (`synthetic_tiny`: anchors pruned, so each image
+/// gives its own voxel count) after its first frame.
+#[derive(Debug, Clone, serde::Serialize)]
+struct CompileCounts {
+    /// The first frame run again: what burn-fusion's second pass over the same operations compiles
+    /// (the first pass explores and stores execution plans; later passes run the stored plans,
+    /// which can cut the stream into other fused blocks). Part of the warm-up.
+    same_frame_again: Option<u64>,
+    /// Each later frame (another image, so another voxel count) after that warm-up; the first of
+    /// them is `compiles_after_warmup`.
+    new_frames: Vec<Option<u64>>,
+}
+
+/// Runs the first frame twice (the warm-up), then `frames - 1` frames of other images, counting
+/// the kernels compiled for each run. `None`s on the CPU backend (nothing is compiled).
+fn compile_counts(dev: &burn::tensor::Device<Infer>, frames: usize) -> Result<CompileCounts> {
+    let default_cfg =
+        occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
+    let model = default_cfg.model.init::<Infer>(dev)?;
+    let log = std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some();
+    let first = model.forward(&tiny_batch(frame(21), None, dev))?;
+    let mut voxels = first.coords.len();
+    let _ = to_vec(first.logits);
+    let mut before = backend::settled_kernel_compilations();
+    let mut counts = Vec::new();
+    // Image seeds: the first again, then new ones.
+    let seeds = std::iter::once(21).chain(22..21 + frames.max(2) as u64);
+    for (run, seed) in seeds.enumerate() {
+        if log {
+            eprintln!(
+                "-- run {} (image {seed}): kernels compiled from here on are counted --",
+                run + 2
+            );
+        }
+        let t0 = Instant::now();
+        let out = model.forward(&tiny_batch(frame(seed), None, dev))?;
+        let _ = to_vec(out.logits);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        let after = backend::settled_kernel_compilations();
+        let count = before.zip(after).map(|(a, b)| b - a);
+        eprintln!(
+            "shipped configuration, run {} ({}): {} voxels (previous {voxels}), {ms:.1} ms, kernels compiled: {}",
+            run + 2,
+            if run == 0 { "the first frame again" } else { "a new frame" },
+            out.coords.len(),
+            count.map_or("n/a (CPU backend)".to_string(), |c| c.to_string())
+        );
+        voxels = out.coords.len();
+        before = after;
+        counts.push(count);
+    }
+    Ok(CompileCounts {
+        same_frame_again: counts[0],
+        new_frames: counts[1..].to_vec(),
+    })
 }
 
 /// A 128x416 random image, seeded.
