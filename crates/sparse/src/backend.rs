@@ -61,6 +61,76 @@ fn weight_matrix<B: Backend>(w: Tensor<B, 3>, transposed: bool) -> Tensor<B, 2> 
     }
 }
 
+/// Row buckets of the portable path's matrix products. cubecl compiles a kernel per configuration,
+/// not per shape, but cubek-matmul 0.2 derives part of the configuration from the row count `M`:
+/// its unit selector's partition grows with `M` (2, 4, 8, 16 rows for `M` below 512, 1,024,
+/// 1,536 and above) and its cube order is swizzled only when the count of row tiles (`M / 128` at
+/// the largest partition) is a multiple of 4. A voxel count as `M` would so compile new kernels
+/// on later frames. Padded to at least [`RowBucket::min`] rows and a multiple of
+/// [`RowBucket::multiple`], every frame gets the same configurations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RowBucket {
+    /// Row counts are padded to a multiple of this.
+    pub multiple: usize,
+    /// ... and to at least this.
+    pub min: usize,
+}
+
+impl RowBucket {
+    /// No padding (the CPU backends, whose kernels take any row count).
+    pub const NONE: Self = Self {
+        multiple: 1,
+        min: 0,
+    };
+    /// The cubecl backends: a multiple of 512 rows, at least 1,536 (see the type's documentation).
+    pub const CUBECL: Self = Self {
+        multiple: 512,
+        min: 1536,
+    };
+
+    /// The padded count for `rows`: `rows` itself without padding, otherwise the smallest allowed
+    /// count above `rows` (always at least one padding row, so that every frame runs the same
+    /// operations, a pad and a slice, whatever its count).
+    pub fn padded(self, rows: usize) -> usize {
+        if self.multiple <= 1 && self.min == 0 {
+            return rows;
+        }
+        let m = self.multiple.max(1);
+        ((rows / m + 1) * m).max(self.min.max(rows + 1))
+    }
+
+    /// `x` with zero rows appended up to [`RowBucket::padded`] rows (`x` itself without padding).
+    ///
+    /// # Shapes
+    /// - x: `[rows, c]` -> `[self.padded(rows), c]`
+    pub fn pad<B: Backend>(self, x: Tensor<B, 2>) -> Tensor<B, 2> {
+        let [rows, c] = x.dims();
+        let padded = self.padded(rows);
+        if padded == rows {
+            return x;
+        }
+        let device = x.device();
+        Tensor::cat(vec![x, Tensor::zeros([padded - rows, c], &device)], 0)
+    }
+
+    /// `f` on `x`'s rows padded to the bucket, its result cut back to `x`'s rows: for row-wise `f`
+    /// (a matrix product with a weight), the same values as `f(x)`.
+    ///
+    /// # Shapes
+    /// - x: `[rows, c]`, f: `[r, c] -> [r, d]` -> `[rows, d]`
+    pub fn map<B: Backend>(
+        self,
+        x: Tensor<B, 2>,
+        f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>,
+    ) -> Tensor<B, 2> {
+        let [rows, _] = x.dims();
+        if self.padded(rows) == rows {
+            return f(x);
+        }
+        f(self.pad(x)).narrow(0, 0, rows)
+    }
+}
+
 /// Row chunks `(start, end)` of an implicit GEMM over `rows` outputs with `width = K·C_in`.
 fn row_chunks(rows: usize, width: usize, max_elems: usize) -> impl Iterator<Item = (usize, usize)> {
     let step = (max_elems / width.max(1)).max(1);
@@ -78,15 +148,28 @@ fn with_zero_row<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
 
 /// The `[rows.len(), K·C_in]` implicit-GEMM block of output rows `rows`: their K neighbour rows of
 /// `xp` (the input with its zero row) side by side, read through the gather table.
+/// With a row bucket, the block has [`RowBucket::padded`] rows, the rows past `rows.len()` all
+/// read the zero row.
 fn gather_rows<B: Backend>(
     xp: &Tensor<B, 2>,
     table: &[u32],
     kv: usize,
     rows: std::ops::Range<usize>,
+    bucket: RowBucket,
 ) -> Tensor<B, 2> {
-    let [_, cin] = xp.dims();
-    let idx = index_tensor::<B>(&table[rows.start * kv..rows.end * kv], &xp.device());
-    xp.clone().select(0, idx).reshape([rows.len(), kv * cin])
+    let [n_in_with_zero, cin] = xp.dims();
+    let padded = bucket.padded(rows.len());
+    let part = &table[rows.start * kv..rows.end * kv];
+    let idx = if padded == rows.len() {
+        index_tensor::<B>(part, &xp.device())
+    } else {
+        let zero_row = (n_in_with_zero - 1) as u32;
+        let mut v = Vec::with_capacity(padded * kv);
+        v.extend_from_slice(part);
+        v.resize(padded * kv, zero_row);
+        index_tensor::<B>(&v, &xp.device())
+    };
+    xp.clone().select(0, idx).reshape([padded, kv * cin])
 }
 
 /// Portable forward (any backend; the one GPU backends use). As an implicit GEMM when the map has a
@@ -100,16 +183,25 @@ pub fn conv_forward_portable<B: Backend>(
     map: &KernelMap,
     transposed: bool,
 ) -> Tensor<B, 2> {
-    conv_forward_portable_chunked(x, w, map, transposed, IMPLICIT_GEMM_MAX_ELEMS)
+    conv_forward_portable_chunked(
+        x,
+        w,
+        map,
+        transposed,
+        IMPLICIT_GEMM_MAX_ELEMS,
+        RowBucket::NONE,
+    )
 }
 
-/// [`conv_forward_portable`] with gathered blocks of at most `max_elems` values.
+/// [`conv_forward_portable`] with gathered blocks of at most `max_elems` values (before padding),
+/// each block's rows padded to `bucket`.
 pub fn conv_forward_portable_chunked<B: Backend>(
     x: Tensor<B, 2>,
     w: Tensor<B, 3>,
     map: &KernelMap,
     transposed: bool,
     max_elems: usize,
+    bucket: RowBucket,
 ) -> Tensor<B, 2> {
     let Some(table) = map.gather_table() else {
         return conv_forward_per_offset(x, w, map, transposed);
@@ -126,7 +218,12 @@ pub fn conv_forward_portable_chunked<B: Backend>(
     let xp = with_zero_row(x);
     let mut parts = Vec::new();
     for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
-        parts.push(gather_rows(&xp, table, kv, a..b).matmul(wm.clone()));
+        let y = gather_rows(&xp, table, kv, a..b, bucket).matmul(wm.clone());
+        parts.push(if bucket.padded(b - a) == b - a {
+            y
+        } else {
+            y.narrow(0, 0, b - a)
+        });
     }
     if parts.len() == 1 {
         parts.pop().expect("one part")
@@ -201,7 +298,7 @@ pub fn conv_weight_grad_portable_chunked<B: Backend>(
     let xp = with_zero_row(x);
     let mut dw: Option<Tensor<B, 2>> = None;
     for (a, b) in row_chunks(n_out, kv * cin, max_elems) {
-        let g = gather_rows(&xp, table, kv, a..b);
+        let g = gather_rows(&xp, table, kv, a..b, RowBucket::NONE);
         let part = g.transpose().matmul(dy.clone().slice([a..b, 0..cout]));
         dw = Some(match dw {
             Some(acc) => acc + part,
@@ -254,6 +351,10 @@ pub trait SparseConvBackend: Backend {
     /// backend's largest buffer bounds it (a block beyond it fails to allocate).
     const MAX_GATHER_ELEMS: usize = IMPLICIT_GEMM_MAX_ELEMS;
 
+    /// Row padding of the portable path's matrix products (see [`RowBucket`]): the cubecl
+    /// backends' by default, none on the CPU.
+    const ROW_BUCKET: RowBucket = RowBucket::CUBECL;
+
     /// `y[o] += W_k x[i]` over the pairs of `map`.
     ///
     /// # Shapes
@@ -270,6 +371,7 @@ pub trait SparseConvBackend: Backend {
             &map,
             transposed,
             Self::MAX_GATHER_ELEMS,
+            Self::ROW_BUCKET,
         ))
     }
 
@@ -452,6 +554,8 @@ where
     burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<E>>,
     burn::backend::ndarray::NdArrayTensor: From<burn::backend::ndarray::SharedArray<I>>,
 {
+    const ROW_BUCKET: RowBucket = RowBucket::NONE;
+
     fn sparse_conv(
         x: FloatTensor<Self>,
         w: FloatTensor<Self>,
@@ -615,6 +719,7 @@ fn autodiff_row_op<B: SparseConvBackend, C: CheckpointStrategy>(
 
 impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
     const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
+    const ROW_BUCKET: RowBucket = B::ROW_BUCKET;
 
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         autodiff_row_op::<B, C>(RowOp::ScatterAdd, values, plan)

@@ -103,11 +103,14 @@ pub fn segment_sum<R: CubeRuntime>(
     output
 }
 
+/// Marks the runtime and element types an op is for, without holding any.
+type TypesOf<R, F, I, BT> = PhantomData<fn() -> (R, F, I, BT)>;
+
 /// The fusion custom op running [`segment_sum`].
 struct SegmentSumOp<R, F, I, BT> {
     desc: CustomOpIr,
     n_out: usize,
-    _backend: PhantomData<fn() -> (R, F, I, BT)>,
+    _backend: TypesOf<R, F, I, BT>,
 }
 
 impl<R, F, I, BT> std::fmt::Debug for SegmentSumOp<R, F, I, BT> {

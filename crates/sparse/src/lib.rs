@@ -26,7 +26,7 @@ pub mod pool;
 pub mod rows;
 pub mod tensor;
 
-pub use backend::SparseConvBackend;
+pub use backend::{RowBucket, SparseConvBackend};
 pub use conv::{ConvKind, SparseConv3d, SparseConv3dConfig};
 pub use coords::{full_grid_coords, Coord, CoordSet};
 pub use error::{Result, SparseError};

@@ -10,6 +10,7 @@ use common::*;
 use occ_sparse::backend::{
     conv_forward_per_offset, conv_forward_portable, conv_forward_portable_chunked,
     conv_weight_grad_per_offset, conv_weight_grad_portable, conv_weight_grad_portable_chunked,
+    RowBucket,
 };
 use occ_sparse::conv::sparse_conv3d;
 use occ_sparse::kernel_map::{
@@ -207,7 +208,7 @@ fn finite_difference_gradients() {
         let ws = [cout, kv, cin];
         // In row chunks: 7 output rows per gathered block here.
         let lim = 7 * kv * cin;
-        let checks: [(&str, Vec<f64>, &[f64]); 7] = [
+        let checks: [(&str, Vec<f64>, &[f64]); 9] = [
             (
                 "implicit GEMM forward",
                 to_vec_inner(conv_forward_portable(xt.clone(), wt.clone(), &map, false)),
@@ -256,10 +257,39 @@ fn finite_difference_gradients() {
                 "chunked forward",
                 to_vec_inner(conv_forward_portable_chunked(
                     xt.clone(),
-                    wt,
+                    wt.clone(),
                     &map,
                     false,
                     lim,
+                    RowBucket::NONE,
+                )),
+                &yh,
+            ),
+            // Each block's rows padded (reading the zero row) and cut back: the same values.
+            (
+                "chunked forward, rows bucketed",
+                to_vec_inner(conv_forward_portable_chunked(
+                    xt.clone(),
+                    wt.clone(),
+                    &map,
+                    false,
+                    lim,
+                    RowBucket {
+                        multiple: 7,
+                        min: 20,
+                    },
+                )),
+                &yh,
+            ),
+            (
+                "forward, rows bucketed as on the cubecl backends",
+                to_vec_inner(conv_forward_portable_chunked(
+                    xt.clone(),
+                    wt,
+                    &map,
+                    false,
+                    usize::MAX,
+                    RowBucket::CUBECL,
                 )),
                 &yh,
             ),
@@ -570,4 +600,33 @@ fn pairs_by_output_and_rows_without_pairs() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0f32, f32::max);
     assert!(err < 1e-5, "max |diff| {err}");
+}
+
+/// The padded row counts: none on the CPU, at least one padding row and the bucket's multiple and
+/// minimum otherwise.
+#[test]
+fn row_bucket_padding() {
+    assert_eq!(RowBucket::NONE.padded(5), 5);
+    assert_eq!(RowBucket::NONE.padded(0), 0);
+    let b = RowBucket::CUBECL;
+    assert_eq!(b.padded(0), 1536);
+    assert_eq!(b.padded(1535), 1536);
+    assert_eq!(b.padded(1536), 2048);
+    assert_eq!(b.padded(2047), 2048);
+    assert_eq!(b.padded(32_697), 32_768);
+    let odd = RowBucket {
+        multiple: 7,
+        min: 20,
+    };
+    assert_eq!(odd.padded(3), 20);
+    assert_eq!(odd.padded(20), 21);
+    let dev = Default::default();
+    let x =
+        Tensor::<NdArray<f64>, 2>::from_data(TensorData::new(vec![1.0, 2.0, 3.0], [3, 1]), &dev);
+    let y = odd.map(x.clone(), |p| {
+        assert_eq!(p.dims(), [20, 1]);
+        p * 2.0
+    });
+    assert_eq!(y.into_data().to_vec::<f64>().unwrap(), vec![2.0, 4.0, 6.0]);
+    assert_eq!(odd.pad(x).dims(), [20, 1]);
 }

@@ -27,7 +27,7 @@ use burn::nn::conv::Conv2d;
 use burn::nn::{BatchNorm, LayerNorm, Linear};
 use burn::tensor::activation::softmax;
 use burn::tensor::Tensor;
-use occ_sparse::SparseConvBackend;
+use occ_sparse::{RowBucket, SparseConvBackend};
 
 /// Backends the models run on: sparse convolution ([`SparseConvBackend`]) plus the model's own
 /// kernels, each with a portable default (see the module documentation).
@@ -55,7 +55,7 @@ pub trait ModelBackend: SparseConvBackend {
         x: Tensor<Self, D>,
         relu: bool,
     ) -> Tensor<Self, D> {
-        linear_portable(lin, x, relu)
+        linear_portable(lin, x, relu, Self::ROW_BUCKET)
     }
 
     /// `ln.forward(x)` for a LayerNorm made with epsilon [`LAYER_NORM_EPSILON`] (burn's module
@@ -112,13 +112,37 @@ fn linear_portable<B: burn::tensor::backend::Backend, const D: usize>(
     lin: &Linear<B>,
     x: Tensor<B, D>,
     relu: bool,
+    bucket: RowBucket,
 ) -> Tensor<B, D> {
-    let y = lin.forward(x);
+    let y = linear_bucketed(lin, x, bucket);
     if relu {
         burn::tensor::activation::relu(y)
     } else {
         y
     }
+}
+
+/// `lin.forward(x)` with `x`'s rows (all axes but the last) padded to `bucket` for the matrix
+/// product (see [`RowBucket`]: on the cubecl backends a voxel count as the row count would compile
+/// new kernels on later frames); the same values.
+///
+/// # Shapes
+/// - x: `[..., d_in]` -> `[..., d_out]`
+pub fn linear_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
+    lin: &Linear<B>,
+    x: Tensor<B, D>,
+    bucket: RowBucket,
+) -> Tensor<B, D> {
+    let dims = x.dims();
+    let d_in = dims[D - 1];
+    let rows = x.shape().num_elements() / d_in.max(1);
+    if bucket.padded(rows) == rows {
+        return lin.forward(x);
+    }
+    let y = bucket.map(x.reshape([rows, d_in]), |x2| lin.forward(x2));
+    let mut out = dims;
+    out[D - 1] = y.dims()[1];
+    y.reshape(out)
 }
 
 /// The CPU backend: the host kernels, in inference and (through `Autodiff<NdArray<T>>`) in training.
@@ -147,7 +171,8 @@ where
         x: Tensor<Self, D>,
         relu: bool,
     ) -> Tensor<Self, D> {
-        rows_host::linear_host(lin, &x, relu).unwrap_or_else(|| linear_portable(lin, x, relu))
+        rows_host::linear_host(lin, &x, relu)
+            .unwrap_or_else(|| linear_portable(lin, x, relu, Self::ROW_BUCKET))
     }
 
     fn row_layer_norm<const D: usize>(ln: &LayerNorm<Self>, x: Tensor<Self, D>) -> Tensor<Self, D> {

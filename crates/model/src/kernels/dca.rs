@@ -156,7 +156,16 @@ pub fn sample_tensor_ops<B: SparseConvBackend>(s: DcaSample<'_, B>) -> Tensor<B,
         let sampled =
             gather_rows(pad_rows(sampled, by_slot.n_out()), &by_slot).reshape([nh, m, p, dh]);
         let w_l = wts.clone().narrow(2, lvl, 1).reshape([nh, m, p, 1]);
-        let contrib = (sampled * w_l).sum_dim(2).reshape([nh, m, dh]);
+        // The sum over the P points as P - 1 additions rather than `sum_dim(2)`: a cubecl reduction
+        // over `nh · M · D/M` outputs compiles one kernel when that count is a multiple of its
+        // cube and another when not, so a frame's hit count could compile a new kernel (the
+        // additions fuse into one element-wise kernel of any size).
+        let weighted = sampled * w_l; // [nh, M, P, D/M]
+        let mut contrib = weighted.clone().narrow(2, 0, 1);
+        for q in 1..p {
+            contrib = contrib + weighted.clone().narrow(2, q, 1);
+        }
+        let contrib = contrib.reshape([nh, m, dh]);
         acc = Some(match acc {
             Some(a) => a + contrib,
             None => contrib,

@@ -87,7 +87,10 @@ fn gcd(a: usize, b: usize) -> usize {
 
 impl MaskHeadConfig {
     /// Initialises the head; errors on zero sizes or heads not dividing the channels.
-    pub fn init<B: Backend>(&self, device: &B::Device) -> Result<MaskHead<B>, ModelError> {
+    pub fn init<B: occ_sparse::SparseConvBackend>(
+        &self,
+        device: &B::Device,
+    ) -> Result<MaskHead<B>, ModelError> {
         let c = self.channels;
         if c == 0
             || self.num_classes < 2
@@ -162,7 +165,7 @@ pub struct Attention<B: Backend> {
     heads: usize,
 }
 
-impl<B: Backend> Attention<B> {
+impl<B: occ_sparse::SparseConvBackend> Attention<B> {
     /// New attention with `heads` heads over `channels` (heads must divide channels).
     pub fn new(channels: usize, heads: usize, device: &B::Device) -> Self {
         let lin = || LinearConfig::new(channels, channels).init(device);
@@ -219,7 +222,7 @@ pub struct DecoderLayer<B: Backend> {
     norm3: LayerNorm<B>,
 }
 
-impl<B: Backend> DecoderLayer<B> {
+impl<B: occ_sparse::SparseConvBackend> DecoderLayer<B> {
     /// Updates the queries.
     ///
     /// # Shapes
@@ -477,7 +480,7 @@ fn index<B: Backend>(v: &[usize], device: &B::Device) -> Tensor<B, 1, Int> {
     Tensor::from_data(TensorData::new(data, [v.len()]), device)
 }
 
-impl<B: Backend> MaskHead<B> {
+impl<B: occ_sparse::SparseConvBackend> MaskHead<B> {
     /// Number of classes (including empty).
     pub fn num_classes(&self) -> usize {
         self.num_classes

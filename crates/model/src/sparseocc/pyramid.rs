@@ -97,7 +97,7 @@ pub struct PyramidOutput<B: Backend> {
     pub mask_features: SparseTensor<B>,
 }
 
-impl<B: Backend> SparsePyramid<B> {
+impl<B: occ_sparse::SparseConvBackend> SparsePyramid<B> {
     /// Fuses the levels.
     ///
     /// # Shapes

@@ -116,7 +116,7 @@ pub struct ScfMlp<B: Backend> {
     pub fc2: Linear<B>,
 }
 
-impl<B: Backend> ScfMlp<B> {
+impl<B: occ_sparse::SparseConvBackend> ScfMlp<B> {
     /// `[N, D]` → `[N, out]`.
     pub fn forward(&self, x: Tensor<B, 2>) -> Tensor<B, 2> {
         crate::profile::linear(&self.fc2, relu(crate::profile::linear(&self.fc1, x)))
@@ -161,7 +161,7 @@ pub struct ScfPrediction<B: Backend> {
     pub s_max_vertical: u32,
 }
 
-impl<B: Backend> ScfHead<B> {
+impl<B: occ_sparse::SparseConvBackend> ScfHead<B> {
     /// Decomposition of this head.
     pub fn decomposition(&self) -> ScfDecomposition {
         self.decomposition

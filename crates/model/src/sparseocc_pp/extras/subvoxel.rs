@@ -68,7 +68,7 @@ pub fn child_coords(parents: &[Coord]) -> Vec<Coord> {
     out
 }
 
-impl<B: Backend> SubVoxelHead<B> {
+impl<B: occ_sparse::SparseConvBackend> SubVoxelHead<B> {
     /// Logits of the children of `parents`.
     ///
     /// # Shapes
