@@ -44,16 +44,16 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$OUT
 step check_backend "$T_CHECK" "$BIN" check-backend --json "$OUT/check_backend.json"
 if [ "${TRACE:-1}" = 1 ]; then
   step trace_pp "$T_TRACE" env SPARSEOCC_TRACE=1 "$BIN" bench --config "$CFG" --models sparseocc++ \
-    --frames 1 --warmup 1
+    --frames 1 --warmup 2
 fi
 step bench_pp "$T_BENCH" "$BIN" bench --config "$CFG" --models sparseocc++ \
   --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp.json"
 if [ "${ALL:-1}" = 1 ]; then
   step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
-    --frames 3 --warmup 1 --json "$OUT/bench_all.json"
+    --frames 3 --warmup 2 --json "$OUT/bench_all.json"
 fi
 if [ "${SCAN:-0}" = 1 ]; then
   step memory_scan "$T_SCAN" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
-    --frames 1 --warmup 1 --scan "$OUT/memory_scan"
+    --frames 1 --warmup 2 --scan "$OUT/memory_scan"
 fi
 echo "results in $OUT"

@@ -20,6 +20,17 @@ pub type Infer = burn_wgpu::Wgpu;
 /// Training backend.
 pub type Train = Autodiff<Infer>;
 
+/// `bench`'s default warm-up frames. On the cubecl backends two: burn-fusion explores the first
+/// pass over a frame's operations and stores execution plans, later passes run the stored plans,
+/// which can cut the stream into other fused blocks and so compile a few kernels once more
+/// (`check-backend`: 2-20 on the second pass over the same frame, none on the frames after it,
+/// whatever their voxel counts; docs/gpu.md). On the CPU one.
+pub const DEFAULT_WARMUP: usize = if cfg!(any(feature = "cuda", feature = "wgpu")) {
+    2
+} else {
+    1
+};
+
 /// The device to run on (CPU; CUDA device 0; the default WebGPU adapter).
 pub fn device() -> burn::tensor::Device<Infer> {
     Default::default()

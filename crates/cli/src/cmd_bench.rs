@@ -39,8 +39,9 @@ pub struct BenchArgs {
     /// Timed frames per model (after the warm-up).
     #[arg(long, default_value_t = 5)]
     pub frames: usize,
-    /// Warm-up frames (not timed).
-    #[arg(long, default_value_t = 1)]
+    /// Warm-up frames (not timed); 2 on the cubecl backends, whose second pass over a frame can
+    /// still compile kernels (burn-fusion runs its stored plans from then on).
+    #[arg(long, default_value_t = crate::backend::DEFAULT_WARMUP)]
     pub warmup: usize,
     /// Write the results as JSON here.
     #[arg(long)]
