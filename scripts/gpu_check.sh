@@ -5,8 +5,14 @@
 #   2. one traced SparseOcc++ pass at the full SemanticKITTI setting (384x1280, ResNet-50, FP32,
 #      batch 1; `SPARSEOCC_TRACE=1` prints every stage and U-Net level as it finishes, so a slow
 #      first pass — kernel compilation, autotuning — shows where it is);
-#   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, then the three
-#      models side by side, then (SCAN=1) the memory scan.
+#   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, the same with the
+#      sparse convolutions on the gather + matrix-product path (`SPARSEOCC_CUBE_CONV=gather-gemm`, the
+#      peer of the default `#[cube]` kernels), then the three models side by side, then (SCAN=1) the
+#      memory scan.
+# Kernel caches: cubecl's compiled-kernel and autotune caches (`SPARSEOCC_KERNEL_CACHE`) and the CUDA
+# driver's (`CUDA_CACHE_PATH`) live in OUT/kernel_cache/<first 16 hex of the binary's sha256>, so they
+# come back with the output; CACHE_FROM=<an earlier OUT> copies that folder in first (same binary:
+# same key), so that a later run starts with its kernels compiled.
 # Every step has its own time limit (seconds, overridable) so that one slow step still leaves the
 # others' results.
 #
@@ -40,6 +46,15 @@ step() { # name, limit, command...
   tail -n 25 "$OUT/$name.log"
   echo "== $name: rc $rc, $((SECONDS - t0)) s"
 }
+KEY=$(sha256sum "$BIN" | cut -c1-16)
+CACHE="$OUT/kernel_cache/$KEY"
+if [ -n "${CACHE_FROM:-}" ] && [ -d "$CACHE_FROM/kernel_cache/$KEY" ]; then
+  mkdir -p "$OUT/kernel_cache"
+  cp -r "$CACHE_FROM/kernel_cache/$KEY" "$OUT/kernel_cache/"
+  echo "kernel caches from $CACHE_FROM/kernel_cache/$KEY"
+fi
+mkdir -p "$CACHE/driver"
+export SPARSEOCC_KERNEL_CACHE="$CACHE" CUDA_CACHE_PATH="$CACHE/driver" CUDA_CACHE_MAXSIZE=4294967296
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$OUT/gpu.txt"
 step check_backend "$T_CHECK" "$BIN" check-backend --json "$OUT/check_backend.json"
 if [ "${TRACE:-1}" = 1 ]; then
@@ -48,6 +63,10 @@ if [ "${TRACE:-1}" = 1 ]; then
 fi
 step bench_pp "$T_BENCH" "$BIN" bench --config "$CFG" --models sparseocc++ \
   --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp.json"
+if [ "${GG:-1}" = 1 ]; then
+  step bench_pp_gather_gemm "$T_BENCH" env SPARSEOCC_CUBE_CONV=gather-gemm "$BIN" bench \
+    --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_gg.json"
+fi
 if [ "${ALL:-1}" = 1 ]; then
   step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
     --frames 3 --warmup 2 --json "$OUT/bench_all.json"

@@ -38,9 +38,13 @@ pub fn device() -> burn::tensor::Device<Infer> {
 
 /// Human-readable device and precision, for logs and benchmark tables.
 pub fn describe() -> String {
+    #[cfg(any(feature = "cuda", feature = "wgpu"))]
+    let conv = occ_sparse::cube::CubeConv::current().as_str();
+    #[cfg(not(any(feature = "cuda", feature = "wgpu")))]
+    let conv = "";
     if cfg!(feature = "cuda") {
         format!(
-            "CUDA device 0 (burn-cuda), fp32, cubecl autotune {}",
+            "CUDA device 0 (burn-cuda), fp32, cubecl autotune {}, sparse conv {conv}",
             if cfg!(feature = "cuda-autotune") {
                 "on"
             } else {
@@ -48,7 +52,9 @@ pub fn describe() -> String {
             }
         )
     } else if cfg!(feature = "wgpu") {
-        "WebGPU default adapter (burn-wgpu, WGSL), fp32, cubecl autotune off".to_string()
+        format!(
+            "WebGPU default adapter (burn-wgpu, WGSL), fp32, cubecl autotune off, sparse conv {conv}"
+        )
     } else {
         format!(
             "CPU, burn-ndarray, {} rayon threads, fp32",
@@ -59,11 +65,18 @@ pub fn describe() -> String {
     }
 }
 
+/// The environment variable naming a folder for cubecl's on-disk caches (compiled kernels under
+/// `compilation/`, autotune results under `autotune/`) on the cubecl backends; unset, cubecl's own
+/// configuration decides (off by default for compiled kernels).
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+pub const KERNEL_CACHE_ENV: &str = "SPARSEOCC_KERNEL_CACHE";
+
 /// Sets the process up for the backend; call first thing in `main`. On the cubecl backends this
 /// turns cubecl's compilation log on at its basic level (one line per compiled kernel), routed to
 /// the `log` crate, where a small logger counts the lines; warnings and errors of cubecl and wgpu are
 /// printed to stderr. The cubecl configuration files (`cubecl.toml`) and `CUBECL_DEBUG_*` variables
-/// are read first and kept, with the compilation logger added.
+/// are read first and kept, with the compilation logger added, and the caches put in the folder
+/// [`KERNEL_CACHE_ENV`] names, if any.
 pub fn init() {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
     compile_count::install();
@@ -104,6 +117,8 @@ pub fn settled_kernel_compilations() -> Option<u64> {
 
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 mod compile_count {
+    use super::KERNEL_CACHE_ENV;
+    use cubecl::config::cache::CacheConfig;
     use cubecl::config::compilation::CompilationLogLevel;
     use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
     use cubecl_common::config::logger::LogCrateLevel;
@@ -158,6 +173,12 @@ mod compile_count {
 
     pub fn install() {
         let mut config = CubeClRuntimeConfig::from_current_dir().override_from_env();
+        if let Some(dir) = std::env::var_os(KERNEL_CACHE_ENV).filter(|d| !d.is_empty()) {
+            // cubecl's caches of compiled kernels and of autotune results in one folder.
+            let dir = std::path::PathBuf::from(dir);
+            config.compilation.cache = Some(CacheConfig::File(dir.join("compilation")));
+            config.autotune.cache = CacheConfig::File(dir.join("autotune"));
+        }
         let logger = &mut config.compilation.logger;
         if std::env::var("SPARSEOCC_LOG_COMPILES").as_deref() == Ok("full") {
             // Each kernel's id (its whole configuration) in the log, to tell why one recompiles.

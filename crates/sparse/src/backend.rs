@@ -50,7 +50,7 @@ const IMPLICIT_GEMM_MAX_ELEMS: usize = 1 << 27;
 
 /// The weight as one `[K·C_in, C_out]` matrix (offset-major rows), the right operand of the
 /// implicit GEMM.
-fn weight_matrix<B: Backend>(w: Tensor<B, 3>, transposed: bool) -> Tensor<B, 2> {
+pub(crate) fn weight_matrix<B: Backend>(w: Tensor<B, 3>, transposed: bool) -> Tensor<B, 2> {
     let [d0, kv, d2] = w.dims();
     if transposed {
         // [C_in, K, C_out] -> [K, C_in, C_out]
@@ -288,7 +288,7 @@ pub fn conv_weight_grad_portable_chunked<B: Backend>(
         return conv_weight_grad_per_offset(x, dy, map, wshape, transposed);
     };
     let device = x.device();
-    let [d0, kv, d2] = wshape;
+    let [_, kv, _] = wshape;
     let [_, cin] = x.dims();
     let [_, cout] = dy.dims();
     let n_out = map.n_out();
@@ -305,7 +305,19 @@ pub fn conv_weight_grad_portable_chunked<B: Backend>(
             None => part,
         });
     }
-    let dw = dw.expect("n_out > 0").reshape([kv, cin, cout]);
+    weight_from_matrix(dw.expect("n_out > 0"), wshape, transposed)
+}
+
+/// The weight `[D0, K, D2]` of a `[K·C_in, C_out]` matrix (offset-major rows): the inverse of
+/// [`weight_matrix`], for weight gradients computed in the implicit GEMM's layout.
+pub(crate) fn weight_from_matrix<B: Backend>(
+    dw: Tensor<B, 2>,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> Tensor<B, 3> {
+    let [d0, kv, d2] = wshape;
+    let [rows, cout] = dw.dims();
+    let dw = dw.reshape([kv, rows / kv.max(1), cout]);
     if transposed {
         dw.swap_dims(0, 1).reshape([d0, kv, d2]) // [C_in, K, C_out]
     } else {
@@ -607,9 +619,61 @@ where
     }
 }
 
-/// CUDA: the portable defaults, with the row scatter-add as a cubecl segment sum ([`crate::cube`]).
+/// The cubecl backends' sparse convolution and its weight gradient: the `#[cube]` kernels of
+/// [`crate::cube`] where the map has a gather table (and [`crate::cube::CubeConv`] is `fetch`), the
+/// portable defaults otherwise.
+#[cfg(feature = "cube")]
+macro_rules! cube_sparse_conv {
+    ($runtime:ty, $f:ty, $i:ty, $b:ty) => {
+        fn sparse_conv(
+            x: FloatTensor<Self>,
+            w: FloatTensor<Self>,
+            map: Arc<KernelMap>,
+            transposed: bool,
+        ) -> FloatTensor<Self> {
+            match crate::cube::fusion_sparse_conv::<$runtime, $f, $i, $b>(x, w, &map, transposed) {
+                Ok(y) => y,
+                Err((x, w)) => unwrap(conv_forward_portable_chunked::<Self>(
+                    wrap(x),
+                    wrap(w),
+                    &map,
+                    transposed,
+                    Self::MAX_GATHER_ELEMS,
+                    Self::ROW_BUCKET,
+                )),
+            }
+        }
+
+        fn sparse_conv_weight_grad(
+            x: FloatTensor<Self>,
+            dy: FloatTensor<Self>,
+            map: Arc<KernelMap>,
+            wshape: [usize; 3],
+            transposed: bool,
+        ) -> FloatTensor<Self> {
+            match crate::cube::fusion_sparse_conv_weight_grad::<$runtime, $f, $i, $b>(
+                x, dy, &map, wshape, transposed,
+            ) {
+                Ok(dw) => dw,
+                Err((x, dy)) => unwrap(conv_weight_grad_portable_chunked::<Self>(
+                    wrap(x),
+                    wrap(dy),
+                    &map,
+                    wshape,
+                    transposed,
+                    Self::MAX_GATHER_ELEMS,
+                )),
+            }
+        }
+    };
+}
+
+/// CUDA: the sparse convolution as `#[cube]` kernels, the row scatter-add as a cubecl segment sum
+/// ([`crate::cube`]).
 #[cfg(feature = "cuda")]
 impl SparseConvBackend for burn_cuda::Cuda {
+    cube_sparse_conv!(cubecl::cuda::CudaRuntime, f32, i32, u8);
+
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         crate::cube::fusion_scatter_add_rows::<cubecl::cuda::CudaRuntime, f32, i32, u8>(
             values, &plan,
@@ -617,12 +681,14 @@ impl SparseConvBackend for burn_cuda::Cuda {
     }
 }
 
-/// WebGPU (WGSL; lavapipe on a machine without a GPU): the portable defaults, in gathered blocks of
-/// 64 MiB: WebGPU's default storage-buffer binding limit is 128 MiB (lavapipe refused a 219 MiB block
-/// of the 2^27-value default).
+/// WebGPU (WGSL; lavapipe on a machine without a GPU): the `#[cube]` kernels as on CUDA; the
+/// portable path, where it runs, in gathered blocks of 64 MiB: WebGPU's default storage-buffer
+/// binding limit is 128 MiB (lavapipe refused a 219 MiB block of the 2^27-value default).
 #[cfg(feature = "wgpu")]
 impl SparseConvBackend for burn_wgpu::Wgpu {
     const MAX_GATHER_ELEMS: usize = 1 << 24;
+
+    cube_sparse_conv!(burn_wgpu::WgpuRuntime, f32, i32, u32);
 
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         crate::cube::fusion_scatter_add_rows::<burn_wgpu::WgpuRuntime, f32, i32, u32>(values, &plan)

@@ -4,10 +4,12 @@
 //! `Fusion<CubeBackend>`). Tested against the NdArray reference by `sparseocc check-backend`
 //! (lavapipe when there is no GPU: docs/gpu.md).
 
-use crate::backend::index_tensor;
+use crate::backend::{index_tensor, weight_from_matrix, weight_matrix};
+use crate::kernel_map::KernelMap;
 use crate::rows::RowPlan;
+use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Shape, Tensor as BurnTensor, TensorPrimitive};
+use burn::tensor::{Int, Shape, Tensor as BurnTensor, TensorPrimitive};
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
@@ -16,7 +18,7 @@ use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElemen
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::{Fusion, FusionRuntime};
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, OperationOutput, TensorIr};
-use cubecl::{calculate_cube_count_elemwise, CubeDim};
+use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use kernel::segment_sum_kernel;
 use std::marker::PhantomData;
 
@@ -49,6 +51,316 @@ mod kernel {
         }
         output[ABSOLUTE_POS] = acc;
     }
+
+    /// Units per side of a cube of the sparse-convolution kernels (`TILE x TILE` units), and the
+    /// depth of one step of their inner products (input channels, or rows for the weight gradient).
+    pub(super) const TILE: usize = 16;
+    /// Output rows of one forward cube (4 per unit).
+    pub(super) const FWD_ROWS: usize = 64;
+    /// Output channels of one forward cube (2 per unit), and both sides of a weight-gradient
+    /// cube's tile (2 x 2 per unit).
+    pub(super) const COLS: usize = 32;
+
+    /// Sparse convolution as an implicit GEMM that fetches on demand: output `(r, c)` is
+    /// `Σ_k Σ_i x[table[r, k], i] · weight[k · c_in + i, c]` over the present neighbours
+    /// (`table[r, k] < n_in`). One cube of `TILE x TILE` units computes a `FWD_ROWS x COLS` output
+    /// tile (each unit 4 rows x 2 channels, in registers; rows on the cube's x and z positions,
+    /// channel tiles on y), stepping through the kernel offsets and, for each, through the input
+    /// channels `TILE` at a time, staged in shared memory. An offset that no row of the tile has
+    /// is skipped (no loads, no multiply-adds); neighbours are read straight from `x`, nothing is
+    /// gathered into a buffer. Each output is summed by one unit in a fixed order: deterministic,
+    /// no atomics. Every size is a runtime value, so the compiled kernel does not depend on the
+    /// voxel count.
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn sparse_conv_kernel<F: Float, I: Numeric>(
+        x: &Tensor<F>,
+        table: &Tensor<I>,
+        weight: &Tensor<F>,
+        output: &mut Tensor<F>,
+        n_in: usize,
+        n_out: usize,
+        kv: usize,
+        cin: usize,
+        cout: usize,
+        #[define(F, I)] _dtypes: [StorageType; 2],
+    ) {
+        let tx = UNIT_POS_X as usize;
+        let ty = UNIT_POS_Y as usize;
+        let row_tile = CUBE_POS_Z as usize * CUBE_COUNT_X as usize + CUBE_POS_X as usize;
+        let row0 = row_tile * FWD_ROWS;
+        let col0 = CUBE_POS_Y as usize * COLS;
+        // a[row][i]: FWD_ROWS x TILE; b[i][col]: TILE x COLS.
+        let mut a = SharedMemory::<F>::new(FWD_ROWS * TILE);
+        let mut b = SharedMemory::<F>::new(TILE * COLS);
+        let mut nbr = SharedMemory::<u32>::new(FWD_ROWS);
+        let absent = n_in as u32;
+        let zero = F::from_int(0);
+        let (mut c00, mut c01, mut c10, mut c11) = (zero, zero, zero, zero);
+        let (mut c20, mut c21, mut c30, mut c31) = (zero, zero, zero, zero);
+        for k in 0..kv {
+            if ty < FWD_ROWS / TILE {
+                let j = ty * TILE + tx;
+                let r = row0 + j;
+                let mut v = absent;
+                if r < n_out {
+                    v = u32::cast_from(table[r * kv + k]);
+                }
+                nbr[j] = v;
+            }
+            sync_cube();
+            let mut any = false;
+            for j in 0..FWD_ROWS {
+                if nbr[j] < absent {
+                    any = true;
+                }
+            }
+            let mut c0 = 0usize;
+            while c0 < cin {
+                if any {
+                    let ci = c0 + tx;
+                    #[unroll]
+                    for q in 0..FWD_ROWS / TILE {
+                        let rl = ty + q * TILE;
+                        let n = nbr[rl];
+                        let mut av = zero;
+                        if n < absent && ci < cin {
+                            av = x[n as usize * cin + ci];
+                        }
+                        a[rl * TILE + tx] = av;
+                    }
+                    let wi = c0 + ty;
+                    #[unroll]
+                    for q in 0..COLS / TILE {
+                        let cl = tx + q * TILE;
+                        let col = col0 + cl;
+                        let mut bv = zero;
+                        if wi < cin && col < cout {
+                            bv = weight[(k * cin + wi) * cout + col];
+                        }
+                        b[ty * COLS + cl] = bv;
+                    }
+                }
+                sync_cube();
+                if any {
+                    for i in 0..TILE {
+                        let b0 = b[i * COLS + tx];
+                        let b1 = b[i * COLS + tx + TILE];
+                        let a0 = a[ty * TILE + i];
+                        let a1 = a[(ty + TILE) * TILE + i];
+                        let a2 = a[(ty + 2 * TILE) * TILE + i];
+                        let a3 = a[(ty + 3 * TILE) * TILE + i];
+                        c00 += a0 * b0;
+                        c01 += a0 * b1;
+                        c10 += a1 * b0;
+                        c11 += a1 * b1;
+                        c20 += a2 * b0;
+                        c21 += a2 * b1;
+                        c30 += a3 * b0;
+                        c31 += a3 * b1;
+                    }
+                }
+                sync_cube();
+                c0 += TILE;
+            }
+        }
+        let (col_a, col_b) = (col0 + tx, col0 + tx + TILE);
+        store_pair::<F>(output, row0 + ty, n_out, cout, col_a, col_b, c00, c01);
+        store_pair::<F>(
+            output,
+            row0 + ty + TILE,
+            n_out,
+            cout,
+            col_a,
+            col_b,
+            c10,
+            c11,
+        );
+        store_pair::<F>(
+            output,
+            row0 + ty + 2 * TILE,
+            n_out,
+            cout,
+            col_a,
+            col_b,
+            c20,
+            c21,
+        );
+        store_pair::<F>(
+            output,
+            row0 + ty + 3 * TILE,
+            n_out,
+            cout,
+            col_a,
+            col_b,
+            c30,
+            c31,
+        );
+    }
+
+    /// Writes `va`, `vb` at `(r, col_a)`, `(r, col_b)` of a `[n_rows, cols]` output, each where in
+    /// range.
+    #[cube]
+    #[allow(clippy::too_many_arguments)]
+    fn store_pair<F: Float>(
+        output: &mut Tensor<F>,
+        r: usize,
+        n_rows: usize,
+        cols: usize,
+        col_a: usize,
+        col_b: usize,
+        va: F,
+        vb: F,
+    ) {
+        if r < n_rows {
+            if col_a < cols {
+                output[r * cols + col_a] = va;
+            }
+            if col_b < cols {
+                output[r * cols + col_b] = vb;
+            }
+        }
+    }
+
+    /// Weight gradient of [`sparse_conv_kernel`], in `splits` partial sums over row ranges:
+    /// `partial[s, k · c_in + i, c] = Σ_r x[table[r, k], i] · dy[r, c]` over the rows `r` of range
+    /// `s` (`rows_per_split` rows each) whose neighbour at offset `k` is present. One cube of
+    /// `TILE x TILE` units per (offset, `COLS`-wide input-channel tile, `COLS`-wide output-channel
+    /// tile) on x (`k` slowest) and per range on y, each unit 2 x 2 values in registers, the rows
+    /// `TILE` at a time through shared memory; a row step with no neighbour at `k` is skipped. No
+    /// atomics: the ranges are summed by [`sum_partials_kernel`].
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn sparse_conv_weight_grad_kernel<F: Float, I: Numeric>(
+        x: &Tensor<F>,
+        dy: &Tensor<F>,
+        table: &Tensor<I>,
+        partial: &mut Tensor<F>,
+        n_in: usize,
+        n_out: usize,
+        kv: usize,
+        cin: usize,
+        cout: usize,
+        rows_per_split: usize,
+        #[define(F, I)] _dtypes: [StorageType; 2],
+    ) {
+        let tx = UNIT_POS_X as usize;
+        let ty = UNIT_POS_Y as usize;
+        let ci_tiles = cin.div_ceil(COLS);
+        let co_tiles = cout.div_ceil(COLS);
+        let pos = CUBE_POS_X as usize;
+        let k = pos / (ci_tiles * co_tiles);
+        let rest = pos % (ci_tiles * co_tiles);
+        let ci0 = (rest / co_tiles) * COLS;
+        let co0 = (rest % co_tiles) * COLS;
+        let split = CUBE_POS_Y as usize;
+        let start = split * rows_per_split;
+        let mut end = start + rows_per_split;
+        if end > n_out {
+            end = n_out;
+        }
+        // a[row][i]: TILE x COLS input channels; b[row][c]: TILE x COLS of dy.
+        let mut a = SharedMemory::<F>::new(TILE * COLS);
+        let mut b = SharedMemory::<F>::new(TILE * COLS);
+        let mut nbr = SharedMemory::<u32>::new(TILE);
+        let absent = n_in as u32;
+        let zero = F::from_int(0);
+        let (mut c00, mut c01, mut c10, mut c11) = (zero, zero, zero, zero);
+        let mut r0 = start;
+        while r0 < end {
+            if ty == 0 {
+                let r = r0 + tx;
+                let mut v = absent;
+                if r < end {
+                    v = u32::cast_from(table[r * kv + k]);
+                }
+                nbr[tx] = v;
+            }
+            sync_cube();
+            let mut any = false;
+            for j in 0..TILE {
+                if nbr[j] < absent {
+                    any = true;
+                }
+            }
+            if any {
+                let mine = nbr[ty];
+                let r = r0 + ty;
+                #[unroll]
+                for q in 0..COLS / TILE {
+                    let l = tx + q * TILE;
+                    let i = ci0 + l;
+                    let mut av = zero;
+                    if mine < absent && i < cin {
+                        av = x[mine as usize * cin + i];
+                    }
+                    a[ty * COLS + l] = av;
+                    let c = co0 + l;
+                    let mut bv = zero;
+                    if mine < absent && c < cout {
+                        bv = dy[r * cout + c];
+                    }
+                    b[ty * COLS + l] = bv;
+                }
+            }
+            sync_cube();
+            if any {
+                for j in 0..TILE {
+                    let a0 = a[j * COLS + ty];
+                    let a1 = a[j * COLS + ty + TILE];
+                    let b0 = b[j * COLS + tx];
+                    let b1 = b[j * COLS + tx + TILE];
+                    c00 += a0 * b0;
+                    c01 += a0 * b1;
+                    c10 += a1 * b0;
+                    c11 += a1 * b1;
+                }
+            }
+            sync_cube();
+            r0 += TILE;
+        }
+        // The partial sums of range `split` as a `[K · C_in, C_out]` block of rows.
+        let row_base = split * kv * cin + k * cin;
+        let rows_end = row_base + cin;
+        let (o0, o1) = (co0 + tx, co0 + tx + TILE);
+        store_pair::<F>(
+            partial,
+            row_base + ci0 + ty,
+            rows_end,
+            cout,
+            o0,
+            o1,
+            c00,
+            c01,
+        );
+        store_pair::<F>(
+            partial,
+            row_base + ci0 + ty + TILE,
+            rows_end,
+            cout,
+            o0,
+            o1,
+            c10,
+            c11,
+        );
+    }
+
+    /// `out[j] = Σ_s partial[s · len + j]` over `splits` partial sums, in order, one unit per value.
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn sum_partials_kernel<F: Float>(
+        partial: &Tensor<F>,
+        output: &mut Tensor<F>,
+        splits: usize,
+        #[define(F)] _dtype: StorageType,
+    ) {
+        if ABSOLUTE_POS >= output.len() {
+            terminate!();
+        }
+        let len = output.len();
+        let mut acc = F::from_int(0);
+        for s in 0..splits {
+            acc += partial[s * len + ABSOLUTE_POS];
+        }
+        output[ABSOLUTE_POS] = acc;
+    }
 }
 
 /// Launches [`segment_sum_kernel`] on raw cubecl tensors.
@@ -78,11 +390,7 @@ pub fn segment_sum<R: CubeRuntime>(
     let client = values.client.clone();
     let cube_dim = CubeDim::new(&client, working_units);
     let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
-    let address_type = [&values, &order, &offsets, &output]
-        .iter()
-        .map(|t| t.required_address_type())
-        .max()
-        .unwrap_or_default();
+    let address_type = address_type_of(&[&values, &order, &offsets, &output]);
     let dtypes = [values.dtype.into(), order.dtype.into()];
     // SAFETY: every index is in range: `RowPlan` checks `dest < n_out`, so `order` holds input
     // rows `< H` and `offsets` is non-decreasing up to `H`; the output position is bounds-checked.
@@ -185,4 +493,394 @@ where
             },
         )
         .output()
+}
+
+/// Largest cube count along one dimension (WebGPU's limit; CUDA's y and z have the same one).
+const MAX_CUBES_PER_DIM: usize = 65_535;
+
+/// Most values of the weight gradient's partial sums ([`sparse_conv_weight_grad_fetch`]).
+const MAX_PARTIAL_ELEMS: usize = 1 << 22;
+
+/// Address type wide enough for every tensor of a launch.
+fn address_type_of<R: CubeRuntime>(tensors: &[&CubeTensor<R>]) -> cubecl::prelude::AddressType {
+    tensors
+        .iter()
+        .map(|t| t.required_address_type())
+        .max()
+        .unwrap_or_default()
+}
+
+/// Launches [`kernel::sparse_conv_kernel`] on raw cubecl tensors: the sparse convolution of `x`
+/// over a kernel map's gather table (input row of each output and offset, `n_in` where absent).
+///
+/// # Shapes
+/// - x: `[n_in, C_in]`, table: `[n_out · K]`, weight: `[K · C_in, C_out]` -> `[n_out, C_out]`
+pub fn sparse_conv_fetch<R: CubeRuntime>(
+    x: CubeTensor<R>,
+    table: CubeTensor<R>,
+    weight: CubeTensor<R>,
+    kv: usize,
+) -> CubeTensor<R> {
+    let x = into_contiguous(x);
+    let table = into_contiguous(table);
+    let weight = into_contiguous(weight);
+    let [n_in, cin] = [x.meta.shape()[0], x.meta.shape()[1]];
+    let cout = weight.meta.shape()[1];
+    let n_out = table.meta.shape()[0] / kv.max(1);
+    let output = empty_device_dtype(
+        x.client.clone(),
+        x.device.clone(),
+        Shape::new([n_out, cout]),
+        x.dtype,
+    );
+    if n_out == 0 || cout == 0 {
+        return output;
+    }
+    let tile = kernel::TILE;
+    let row_tiles = n_out.div_ceil(kernel::FWD_ROWS);
+    let count_x = row_tiles.min(MAX_CUBES_PER_DIM);
+    let count_z = row_tiles.div_ceil(count_x);
+    let cube_count = CubeCount::Static(
+        count_x as u32,
+        cout.div_ceil(kernel::COLS) as u32,
+        count_z as u32,
+    );
+    let client = x.client.clone();
+    let address_type = address_type_of(&[&x, &table, &weight, &output]);
+    let dtypes = [x.dtype.into(), table.dtype.into()];
+    // SAFETY: every read is guarded: table entries are read for rows `< n_out` only and are
+    // either `n_in` (absent, never dereferenced) or an input row `< n_in` (the map's invariant);
+    // weight reads are bounded by `k < K`, `i < C_in`, `c < C_out`; writes by `r < n_out`.
+    unsafe {
+        kernel::sparse_conv_kernel::launch_unchecked(
+            &client,
+            cube_count,
+            CubeDim::new_2d(tile as u32, tile as u32),
+            address_type,
+            x.into_tensor_arg(),
+            table.into_tensor_arg(),
+            weight.into_tensor_arg(),
+            output.clone().into_tensor_arg(),
+            n_in,
+            n_out,
+            kv,
+            cin,
+            cout,
+            dtypes,
+        )
+    };
+    output
+}
+
+/// Launches [`kernel::sparse_conv_weight_grad_kernel`] and [`kernel::sum_partials_kernel`]: the
+/// weight gradient of [`sparse_conv_fetch`] as a `[K · C_in, C_out]` matrix. The rows are cut
+/// into a number of ranges fixed by the layer's shape (at most 64, and at most 2^22 partial
+/// values), so that the compiled kernels and the summation order do not depend on the voxel
+/// count.
+///
+/// # Shapes
+/// - x: `[n_in, C_in]`, dy: `[n_out, C_out]`, table: `[n_out · K]` -> `[K · C_in, C_out]`
+pub fn sparse_conv_weight_grad_fetch<R: CubeRuntime>(
+    x: CubeTensor<R>,
+    dy: CubeTensor<R>,
+    table: CubeTensor<R>,
+    kv: usize,
+) -> CubeTensor<R> {
+    let x = into_contiguous(x);
+    let dy = into_contiguous(dy);
+    let table = into_contiguous(table);
+    let [n_in, cin] = [x.meta.shape()[0], x.meta.shape()[1]];
+    let [n_out, cout] = [dy.meta.shape()[0], dy.meta.shape()[1]];
+    let len = kv * cin * cout;
+    let client = x.client.clone();
+    let output = empty_device_dtype(
+        client.clone(),
+        x.device.clone(),
+        Shape::new([kv * cin, cout]),
+        x.dtype,
+    );
+    if len == 0 {
+        return output;
+    }
+    let tile = kernel::TILE;
+    let splits = (MAX_PARTIAL_ELEMS / len).clamp(1, 64);
+    let rows_per_split = n_out.div_ceil(splits).div_ceil(tile).max(1) * tile;
+    let partial = empty_device_dtype(
+        client.clone(),
+        x.device.clone(),
+        Shape::new([splits, kv * cin, cout]),
+        x.dtype,
+    );
+    let tiles = kv * cin.div_ceil(kernel::COLS) * cout.div_ceil(kernel::COLS);
+    let address_type = address_type_of(&[&x, &dy, &table, &partial]);
+    let dtypes = [x.dtype.into(), table.dtype.into()];
+    let f_dtype = x.dtype.into();
+    // SAFETY: table entries are read for rows `< n_out` only, and are `n_in` (never
+    // dereferenced) or an input row `< n_in`; dy is read for rows with a present neighbour; every
+    // partial value `(split, k · C_in + i, c)` is written once, `i < C_in`, `c < C_out` (ranges
+    // past `n_out` write zeros).
+    unsafe {
+        kernel::sparse_conv_weight_grad_kernel::launch_unchecked(
+            &client,
+            CubeCount::Static(tiles as u32, splits as u32, 1),
+            CubeDim::new_2d(tile as u32, tile as u32),
+            address_type,
+            x.into_tensor_arg(),
+            dy.into_tensor_arg(),
+            table.into_tensor_arg(),
+            partial.clone().into_tensor_arg(),
+            n_in,
+            n_out,
+            kv,
+            cin,
+            cout,
+            rows_per_split,
+            dtypes,
+        )
+    };
+    let cube_dim = CubeDim::new(&client, len);
+    let cube_count = calculate_cube_count_elemwise(&client, len, cube_dim);
+    let address_type = address_type_of(&[&partial, &output]);
+    // SAFETY: `partial` holds `splits · len` values; the output position is bounds-checked.
+    unsafe {
+        kernel::sum_partials_kernel::launch_unchecked(
+            &client,
+            cube_count,
+            cube_dim,
+            address_type,
+            partial.into_tensor_arg(),
+            output.clone().into_tensor_arg(),
+            splits,
+            f_dtype,
+        )
+    };
+    output
+}
+
+/// The fusion custom op running [`sparse_conv_fetch`] (`grad: false`) or
+/// [`sparse_conv_weight_grad_fetch`] (`grad: true`).
+struct SparseConvOp<R, F, I, BT> {
+    desc: CustomOpIr,
+    kv: usize,
+    grad: bool,
+    _backend: TypesOf<R, F, I, BT>,
+}
+
+impl<R, F, I, BT> std::fmt::Debug for SparseConvOp<R, F, I, BT> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SparseConvOp")
+            .field("desc", &self.desc)
+            .field("kv", &self.kv)
+            .field("grad", &self.grad)
+            .finish()
+    }
+}
+
+impl<R, F, I, BT> Operation<FusionCubeRuntime<R>> for SparseConvOp<R, F, I, BT>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    fn execute(
+        &self,
+        handles: &mut HandleContainer<<FusionCubeRuntime<R> as FusionRuntime>::FusionHandle>,
+    ) {
+        type Raw<R, F, I, BT> = CubeBackend<R, F, I, BT>;
+        let ([a, b, table], [out]) = self.desc.as_fixed();
+        let a = handles.get_float_tensor::<Raw<R, F, I, BT>>(a);
+        let b = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
+        let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(table);
+        let result = if self.grad {
+            sparse_conv_weight_grad_fetch::<R>(a, b, table, self.kv)
+        } else {
+            sparse_conv_fetch::<R>(a, table, b, self.kv)
+        };
+        handles.register_float_tensor::<Raw<R, F, I, BT>>(&out.id, result);
+    }
+}
+
+/// How the cubecl backends compute a sparse convolution whose map has a gather table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CubeConv {
+    /// The `#[cube]` kernels of this module ([`sparse_conv_fetch`],
+    /// [`sparse_conv_weight_grad_fetch`]): neighbours read on demand, absent ones skipped by tile.
+    Fetch,
+    /// The portable burn-op path ([`crate::backend::conv_forward_portable`]): the `[rows, K·C_in]`
+    /// block gathered into a buffer, then cubecl's matrix product (tensor cores where there are).
+    GatherGemm,
+}
+
+impl CubeConv {
+    /// The environment variable that chooses the compute: `fetch` (the default) or `gather-gemm`.
+    pub const ENV: &'static str = "SPARSEOCC_CUBE_CONV";
+
+    /// The process's choice, read from [`CubeConv::ENV`] once; an unknown value is reported on
+    /// standard error and the default kept.
+    pub fn current() -> Self {
+        static CHOICE: std::sync::OnceLock<CubeConv> = std::sync::OnceLock::new();
+        *CHOICE.get_or_init(|| match std::env::var(Self::ENV).as_deref() {
+            Err(_) | Ok("") | Ok("fetch") => CubeConv::Fetch,
+            Ok("gather-gemm") => CubeConv::GatherGemm,
+            Ok(other) => {
+                eprintln!(
+                    "warning: {}={other:?} is not `fetch` or `gather-gemm`; using `fetch`",
+                    Self::ENV
+                );
+                CubeConv::Fetch
+            }
+        })
+    }
+
+    /// Its name, as [`CubeConv::ENV`] takes it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CubeConv::Fetch => "fetch",
+            CubeConv::GatherGemm => "gather-gemm",
+        }
+    }
+}
+
+/// The map's gather table on `device` as an int tensor, uploaded once per map and device
+/// ([`KernelMap::device_table`]).
+fn device_gather_table<B: Backend>(
+    map: &KernelMap,
+    table: &[u32],
+    device: &B::Device,
+) -> BurnTensor<B, 1, Int> {
+    map.device_table::<(B::Device, BurnTensor<B, 1, Int>)>(
+        |(d, _)| d == device,
+        || (device.clone(), index_tensor::<B>(table, device)),
+    )
+    .1
+}
+
+/// Sparse convolution on a fused cubecl backend with [`sparse_conv_fetch`]; `Err` with the
+/// inputs when the map has no gather table or the process chose [`CubeConv::GatherGemm`].
+///
+/// # Shapes
+/// - x: `[map.n_in(), C_in]`, w: `[D0, K, D2]` -> `[map.n_out(), C_out]`
+#[allow(clippy::type_complexity)]
+pub fn fusion_sparse_conv<R, F, I, BT>(
+    x: FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    w: FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    map: &KernelMap,
+    transposed: bool,
+) -> Result<
+    FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    (
+        FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+        FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    ),
+>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
+    let Some(table) = map.gather_table() else {
+        return Err((x, w));
+    };
+    if CubeConv::current() != CubeConv::Fetch {
+        return Err((x, w));
+    }
+    let w = BurnTensor::<Fused<R, F, I, BT>, 3>::from_primitive(TensorPrimitive::Float(w));
+    let device = w.device();
+    let wm = weight_matrix(w, transposed).into_primitive().tensor();
+    let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
+    let client = x.client.clone();
+    let streams = OperationStreams::with_inputs([&x, &wm, &table]);
+    let out = TensorIr::uninit(
+        client.create_empty_handle(),
+        Shape::new([map.n_out(), wm.shape[1]]),
+        x.dtype,
+    );
+    let desc = CustomOpIr::new(
+        "occ_sparse::sparse_conv_fetch",
+        &[x.into_ir(), wm.into_ir(), table.into_ir()],
+        &[out],
+    );
+    Ok(client
+        .register(
+            streams,
+            OperationIr::Custom(desc.clone()),
+            SparseConvOp::<R, F, I, BT> {
+                desc,
+                kv: map.kernel_volume(),
+                grad: false,
+                _backend: PhantomData,
+            },
+        )
+        .output())
+}
+
+/// Weight gradient of [`fusion_sparse_conv`] with [`sparse_conv_weight_grad_fetch`]; `Err` with
+/// the inputs in the same cases.
+///
+/// # Shapes
+/// - x: `[n_in, C_in]`, dy: `[n_out, C_out]` -> `[D0, K, D2]`
+#[allow(clippy::type_complexity)]
+pub fn fusion_sparse_conv_weight_grad<R, F, I, BT>(
+    x: FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    dy: FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> Result<
+    FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    (
+        FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+        FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    ),
+>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
+    let Some(table) = map.gather_table() else {
+        return Err((x, dy));
+    };
+    if CubeConv::current() != CubeConv::Fetch {
+        return Err((x, dy));
+    }
+    let x = BurnTensor::<Fused<R, F, I, BT>, 2>::from_primitive(TensorPrimitive::Float(x));
+    let device = x.device();
+    let x = x.into_primitive().tensor();
+    let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
+    let kv = map.kernel_volume();
+    let (cin, cout) = (x.shape[1], dy.shape[1]);
+    let client = x.client.clone();
+    let streams = OperationStreams::with_inputs([&x, &dy, &table]);
+    let out = TensorIr::uninit(
+        client.create_empty_handle(),
+        Shape::new([kv * cin, cout]),
+        x.dtype,
+    );
+    let desc = CustomOpIr::new(
+        "occ_sparse::sparse_conv_weight_grad_fetch",
+        &[x.into_ir(), dy.into_ir(), table.into_ir()],
+        &[out],
+    );
+    let dw = client
+        .register(
+            streams,
+            OperationIr::Custom(desc.clone()),
+            SparseConvOp::<R, F, I, BT> {
+                desc,
+                kv,
+                grad: true,
+                _backend: PhantomData,
+            },
+        )
+        .output();
+    let dw = BurnTensor::<Fused<R, F, I, BT>, 2>::from_primitive(TensorPrimitive::Float(dw));
+    Ok(weight_from_matrix(dw, wshape, transposed)
+        .into_primitive()
+        .tensor())
 }

@@ -12,7 +12,8 @@
 use crate::coords::{pack, unique_sorted, Coord, CoordSet};
 use crate::error::{Result, SparseError};
 use rayon::prelude::*;
-use std::sync::{Arc, OnceLock, Weak};
+use std::any::Any;
+use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Instant;
 
 /// Kernel size, stride, padding and dilation of a convolution or pooling, per axis (x, y, z).
@@ -159,6 +160,19 @@ pub struct KernelMap {
     transposed: OnceLock<Arc<KernelMap>>,
     gather_table: OnceLock<Option<Vec<u32>>>,
     by_output: OnceLock<OutputPairs>,
+    device_tables: DeviceTables,
+}
+
+/// Copies of a map's tables on compute devices (see [`KernelMap::device_table`]), type-erased so
+/// that the map stays independent of any backend.
+#[derive(Default)]
+struct DeviceTables(Mutex<Vec<Box<dyn Any + Send + Sync>>>);
+
+impl std::fmt::Debug for DeviceTables {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let n = self.0.lock().map(|v| v.len()).unwrap_or(0);
+        write!(f, "DeviceTables({n})")
+    }
 }
 
 /// A map's pairs grouped by output row (compressed sparse rows): the pairs of output `o` are
@@ -208,6 +222,7 @@ impl KernelMap {
             transposed: OnceLock::new(),
             gather_table: OnceLock::new(),
             by_output: OnceLock::new(),
+            device_tables: DeviceTables::default(),
         })
     }
 
@@ -270,6 +285,32 @@ impl KernelMap {
             .as_deref()
     }
 
+    /// A table derived from this map on one compute device (the gather table uploaded to a GPU):
+    /// the first cached value of type `T` that `matches` accepts, or else the one `make` builds,
+    /// which is kept with the map (so a frame's layers that share a map, and their backward
+    /// passes, upload it once). Any backend type fits; the map never looks inside.
+    pub fn device_table<T: Any + Send + Sync + Clone>(
+        &self,
+        matches: impl Fn(&T) -> bool,
+        make: impl FnOnce() -> T,
+    ) -> T {
+        let mut tables = self
+            .device_tables
+            .0
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some(t) = tables
+            .iter()
+            .filter_map(|b| b.downcast_ref::<T>())
+            .find(|t| matches(t))
+        {
+            return t.clone();
+        }
+        let t = make();
+        tables.push(Box::new(t.clone()));
+        t
+    }
+
     /// The pairs grouped by output row, in ascending kernel offset within a row (a counting sort
     /// of the pairs, `O(pairs + n_out)`). Computed once and cached.
     pub fn by_output(&self) -> &OutputPairs {
@@ -318,6 +359,7 @@ impl KernelMap {
             transposed: OnceLock::new(),
             gather_table: OnceLock::new(),
             by_output: OnceLock::new(),
+            device_tables: DeviceTables::default(),
         }
     }
 
@@ -351,6 +393,7 @@ impl KernelMap {
                     transposed: OnceLock::new(),
                     gather_table: OnceLock::new(),
                     by_output: OnceLock::new(),
+                    device_tables: DeviceTables::default(),
                 })
             })
             .clone()
@@ -695,6 +738,7 @@ fn assemble(
         transposed: OnceLock::new(),
         gather_table: OnceLock::new(),
         by_output: OnceLock::new(),
+        device_tables: DeviceTables::default(),
     }
 }
 

@@ -59,20 +59,22 @@ pub trait ModelBackend: SparseConvBackend {
     }
 
     /// `ln.forward(x)` for a LayerNorm made with epsilon [`LAYER_NORM_EPSILON`] (burn's module
-    /// does not expose its epsilon, so the models build theirs with this constant).
+    /// does not expose its epsilon, so the models build theirs with this constant). The default
+    /// pads the rows to [`SparseConvBackend::ROW_BUCKET`] (see [`rows_bucketed`]).
     ///
     /// # Shapes
     /// - x: `[..., d]` -> `[..., d]`
     fn row_layer_norm<const D: usize>(ln: &LayerNorm<Self>, x: Tensor<Self, D>) -> Tensor<Self, D> {
-        ln.forward(x)
+        rows_bucketed(x, Self::ROW_BUCKET, |x| ln.forward(x))
     }
 
-    /// Softmax over the last axis.
+    /// Softmax over the last axis. The default pads the rows to
+    /// [`SparseConvBackend::ROW_BUCKET`] (see [`rows_bucketed`]).
     ///
     /// # Shapes
     /// - x: `[..., d]` -> `[..., d]`
     fn row_softmax<const D: usize>(x: Tensor<Self, D>) -> Tensor<Self, D> {
-        softmax(x, D - 1)
+        rows_bucketed(x, Self::ROW_BUCKET, |x| softmax(x, 1))
     }
 
     /// The DCA sampling step (see [`dca`]).
@@ -133,13 +135,26 @@ pub fn linear_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
     x: Tensor<B, D>,
     bucket: RowBucket,
 ) -> Tensor<B, D> {
+    rows_bucketed(x, bucket, |x2| lin.forward(x2))
+}
+
+/// `f` applied to `x` seen as rows `[rows, d]` (all axes but the last), the rows padded with zeros
+/// to `bucket` and cut back after: for row-wise ops whose kernels a row count can configure (a
+/// matrix product's partition; a reduction over each row, whose idle-unit variant follows the
+/// number of rows; see [`RowBucket`]). `f` must be row-wise (row `r` of its output depends on
+/// row `r` of its input only). Without padding (the CPU backends), `f` gets `x` reshaped.
+///
+/// # Shapes
+/// - x: `[..., d]` -> `[..., d_out]` (`f`: `[rows, d]` -> `[rows, d_out]`)
+pub fn rows_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
+    x: Tensor<B, D>,
+    bucket: RowBucket,
+    f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>,
+) -> Tensor<B, D> {
     let dims = x.dims();
     let d_in = dims[D - 1];
     let rows = x.shape().num_elements() / d_in.max(1);
-    if bucket.padded(rows) == rows {
-        return lin.forward(x);
-    }
-    let y = bucket.map(x.reshape([rows, d_in]), |x2| lin.forward(x2));
+    let y = bucket.map(x.reshape([rows, d_in]), f);
     let mut out = dims;
     out[D - 1] = y.dims()[1];
     y.reshape(out)

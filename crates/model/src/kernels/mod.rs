@@ -23,7 +23,7 @@ pub(crate) mod dca_host;
 pub mod host_data;
 pub(crate) mod rows_host;
 
-pub use backend::{linear_bucketed, ModelBackend, LAYER_NORM_EPSILON};
+pub use backend::{linear_bucketed, rows_bucketed, ModelBackend, LAYER_NORM_EPSILON};
 pub use dca::{DcaSample, ViewHits};
 
 use std::cell::Cell;

@@ -172,7 +172,7 @@ pub struct AnchorStage<B: Backend> {
 }
 
 /// Occupancy score `logsumexp(logits[:, 1..]) - logits[:, 0]` (log-odds of "not empty") on the host.
-pub fn occupancy_score<B: Backend>(logits: &Tensor<B, 2>) -> Vec<f32> {
+pub fn occupancy_score<B: occ_sparse::SparseConvBackend>(logits: &Tensor<B, 2>) -> Vec<f32> {
     let [n, k] = logits.dims();
     if n == 0 {
         return Vec::new();
@@ -180,11 +180,14 @@ pub fn occupancy_score<B: Backend>(logits: &Tensor<B, 2>) -> Vec<f32> {
     if k < 2 {
         return vec![0.0; n];
     }
-    let l = logits.clone().detach();
-    let rest = l.clone().narrow(1, 1, k - 1);
-    let m = rest.clone().max_dim(1);
-    let lse = (rest - m.clone()).exp().sum_dim(1).log() + m;
-    let s = (lse - l.narrow(1, 0, 1)).reshape([n]);
+    // Row reductions over the candidates, their rows padded (see `rows_bucketed`).
+    let s = crate::kernels::rows_bucketed(logits.clone().detach(), B::ROW_BUCKET, |l| {
+        let rest = l.clone().narrow(1, 1, k - 1);
+        let m = rest.clone().max_dim(1);
+        let lse = (rest - m.clone()).exp().sum_dim(1).log() + m;
+        lse - l.narrow(1, 0, 1)
+    })
+    .reshape([n]);
     s.into_data()
         .convert::<f32>()
         .to_vec::<f32>()

@@ -181,10 +181,11 @@ impl<B: occ_sparse::SparseConvBackend> ScfHead<B> {
         }
         let s_max = s_max as i32;
         match self.learning {
-            ScfLearning::Bins => out
-                .clone()
-                .detach()
+            // The arg-max over each row's bins, the rows padded (see `kernels::rows_bucketed`).
+            ScfLearning::Bins => B::ROW_BUCKET
+                .pad(out.clone().detach())
                 .argmax(1)
+                .narrow(0, 0, n)
                 .reshape([n])
                 .into_data()
                 .convert::<i64>()
