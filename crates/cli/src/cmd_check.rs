@@ -16,7 +16,8 @@
 //!   few kernels, `compiles.same_frame_again`), then `--frames - 1` frames of other images, each
 //!   with its own voxel count, whose counts are `compiles.new_frames` (the first of them is
 //!   `compiles_after_warmup`, which must not exceed `--max-compiles-after-warmup`);
-//!   `--compiles-only` runs this part alone;
+//!   `--compiles-only` runs this part alone; the model's weights are seeded (`--seed`), and the
+//!   count fails when no new frame changed the voxel count;
 //! - one SparseOcc++ training step on a smaller grid: every loss term and parameter gradient, and,
 //!   where gradients differ, each kind of loss term back-propagated alone, and where the image
 //!   encoder's differ, its backward cut apart (whole, backbone, neck, each residual block alone);
@@ -73,6 +74,10 @@ pub struct CheckArgs {
     /// Run the compile count alone (no comparison with the reference).
     #[arg(long)]
     pub compiles_only: bool,
+    /// Seed of the compile count's model weights (which voxels a frame keeps follows them). The
+    /// count fails when no new frame changed the voxel count: then it tested nothing.
+    #[arg(long, default_value_t = 3)]
+    pub seed: u64,
 }
 
 fn lcg(seed: u64) -> impl FnMut() -> f32 {
@@ -174,7 +179,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     count_panics();
     let dev = backend::device();
     if args.compiles_only {
-        let compiles = compile_counts(&dev, args.frames)?;
+        let compiles = compile_counts(&dev, args.frames, args.seed)?;
         let after_warmup = compiles.new_frames.first().copied().flatten();
         if let Some(p) = &args.json {
             crate::util::write_json(
@@ -184,7 +189,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
                     "kernel_compilations": backend::kernel_compilations()}),
             )?;
         }
-        return check_compiles(after_warmup, args);
+        return check_compiles(after_warmup, &compiles, args);
     }
     let cpu_dev = Default::default();
     let coords = scene();
@@ -505,7 +510,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         "logits_beyond_tolerance": beyond, "stages": stage_cases,
         "finite": finite, "first_call_ms": first_ms}),
     );
-    let compiles = compile_counts(&dev, args.frames)?;
+    let compiles = compile_counts(&dev, args.frames, args.seed)?;
     let compiles_after_warmup = compiles.new_frames.first().copied().flatten();
 
     // One SparseOcc++ training step (forward with labels, the losses, backward) against the
@@ -646,7 +651,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
             backend::describe()
         );
     }
-    check_compiles(compiles_after_warmup, args)?;
+    check_compiles(compiles_after_warmup, &compiles, args)?;
     if worst > args.tol {
         bail!(
             "{}: differs from the NdArray reference by {worst:.2e} (> {:.0e})",
@@ -662,7 +667,19 @@ pub fn run(args: &CheckArgs) -> Result<()> {
 }
 
 /// Fails when the second frame compiled more kernels than `--max-compiles-after-warmup` allows.
-fn check_compiles(compiles_after_warmup: Option<u64>, args: &CheckArgs) -> Result<()> {
+fn check_compiles(
+    compiles_after_warmup: Option<u64>,
+    compiles: &CompileCounts,
+    args: &CheckArgs,
+) -> Result<()> {
+    if compiles_after_warmup.is_some() && !compiles.voxel_count_changed() {
+        bail!(
+            "{}: no new frame changed the voxel count ({:?}), so the compile count tested no new \
+             count; choose another --seed",
+            backend::describe(),
+            compiles.voxels
+        );
+    }
     if let Some(c) = compiles_after_warmup.filter(|&c| c > args.max_compiles_after_warmup) {
         bail!(
             "{}: {c} kernel(s) compiled for a second frame after the warm-up, more than the {} \
@@ -685,21 +702,35 @@ struct CompileCounts {
     /// Each later frame (another image, so another voxel count) after that warm-up; the first of
     /// them is `compiles_after_warmup`.
     new_frames: Vec<Option<u64>>,
+    /// Voxels of each run: the first frame, the first frame again, then the new frames.
+    voxels: Vec<usize>,
+}
+
+impl CompileCounts {
+    /// Whether some new frame had another voxel count than the warm-up frame.
+    fn voxel_count_changed(&self) -> bool {
+        self.voxels.iter().skip(2).any(|&v| v != self.voxels[0])
+    }
 }
 
 /// Runs the first frame twice (the warm-up), then `frames - 1` frames of other images, counting
 /// the kernels compiled for each run. `None`s on the CPU backend (nothing is compiled).
-fn compile_counts(dev: &burn::tensor::Device<Infer>, frames: usize) -> Result<CompileCounts> {
+fn compile_counts(
+    dev: &burn::tensor::Device<Infer>,
+    frames: usize,
+    seed: u64,
+) -> Result<CompileCounts> {
     let default_cfg =
         occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
     // Seeded weights: which voxels a frame keeps follows the weights, and a run-to-run difference
     // there made the count differ between runs (2026-12-06: 2 of 3 unseeded full checks compiled
     // 2-3 kernels on a frame of about 262,100 voxels, none of 4 compile-only runs did).
-    <Infer as Backend>::seed(dev, 21);
+    <Infer as Backend>::seed(dev, seed);
     let model = default_cfg.model.init::<Infer>(dev)?;
     let log = std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some();
     let first = model.forward(&tiny_batch(frame(21), None, dev))?;
     let mut voxels = first.coords.len();
+    let mut voxel_counts = vec![voxels];
     let _ = to_vec(first.logits);
     let mut before = backend::settled_kernel_compilations();
     let mut counts = Vec::new();
@@ -726,12 +757,14 @@ fn compile_counts(dev: &burn::tensor::Device<Infer>, frames: usize) -> Result<Co
             count.map_or("n/a (CPU backend)".to_string(), |c| c.to_string())
         );
         voxels = out.coords.len();
+        voxel_counts.push(voxels);
         before = after;
         counts.push(count);
     }
     Ok(CompileCounts {
         same_frame_again: counts[0],
         new_frames: counts[1..].to_vec(),
+        voxels: voxel_counts,
     })
 }
 

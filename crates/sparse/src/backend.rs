@@ -354,6 +354,43 @@ pub fn conv_weight_grad_per_offset<B: Backend>(
     Tensor::cat(slices, 1)
 }
 
+/// The portable forward on a backend's primitives, with its gather limit and row bucket (the
+/// default of [`SparseConvBackend::sparse_conv`]).
+fn portable_sparse_conv<B: SparseConvBackend>(
+    x: FloatTensor<B>,
+    w: FloatTensor<B>,
+    map: &KernelMap,
+    transposed: bool,
+) -> FloatTensor<B> {
+    unwrap(conv_forward_portable_chunked::<B>(
+        wrap(x),
+        wrap(w),
+        map,
+        transposed,
+        B::MAX_GATHER_ELEMS,
+        B::ROW_BUCKET,
+    ))
+}
+
+/// The portable weight gradient on a backend's primitives, with its gather limit (the default of
+/// [`SparseConvBackend::sparse_conv_weight_grad`]).
+fn portable_sparse_conv_weight_grad<B: SparseConvBackend>(
+    x: FloatTensor<B>,
+    dy: FloatTensor<B>,
+    map: &KernelMap,
+    wshape: [usize; 3],
+    transposed: bool,
+) -> FloatTensor<B> {
+    unwrap(conv_weight_grad_portable_chunked::<B>(
+        wrap(x),
+        wrap(dy),
+        map,
+        wshape,
+        transposed,
+        B::MAX_GATHER_ELEMS,
+    ))
+}
+
 /// Backends that can run sparse convolution.
 ///
 /// Weight `w` is `[D0, K, D2]` (the layer's `[Cout, kx, ky, kz, Cin]` flattened); see
@@ -377,14 +414,7 @@ pub trait SparseConvBackend: Backend {
         map: Arc<KernelMap>,
         transposed: bool,
     ) -> FloatTensor<Self> {
-        unwrap(conv_forward_portable_chunked::<Self>(
-            wrap(x),
-            wrap(w),
-            &map,
-            transposed,
-            Self::MAX_GATHER_ELEMS,
-            Self::ROW_BUCKET,
-        ))
+        portable_sparse_conv::<Self>(x, w, &map, transposed)
     }
 
     /// Gradient of [`SparseConvBackend::sparse_conv`] with respect to the weight.
@@ -398,14 +428,7 @@ pub trait SparseConvBackend: Backend {
         wshape: [usize; 3],
         transposed: bool,
     ) -> FloatTensor<Self> {
-        unwrap(conv_weight_grad_portable_chunked::<Self>(
-            wrap(x),
-            wrap(dy),
-            &map,
-            wshape,
-            transposed,
-            Self::MAX_GATHER_ELEMS,
-        ))
+        portable_sparse_conv_weight_grad::<Self>(x, dy, &map, wshape, transposed)
     }
 
     /// Scatter-add of rows over a plan: `out[r] = Σ_{h : dest[h] = r} values[h]`
@@ -633,14 +656,7 @@ macro_rules! cube_sparse_conv {
         ) -> FloatTensor<Self> {
             match crate::cube::fusion_sparse_conv::<$runtime, $f, $i, $b>(x, w, &map, transposed) {
                 Ok(y) => y,
-                Err((x, w)) => unwrap(conv_forward_portable_chunked::<Self>(
-                    wrap(x),
-                    wrap(w),
-                    &map,
-                    transposed,
-                    Self::MAX_GATHER_ELEMS,
-                    Self::ROW_BUCKET,
-                )),
+                Err((x, w)) => portable_sparse_conv::<Self>(x, w, &map, transposed),
             }
         }
 
@@ -655,14 +671,9 @@ macro_rules! cube_sparse_conv {
                 x, dy, &map, wshape, transposed,
             ) {
                 Ok(dw) => dw,
-                Err((x, dy)) => unwrap(conv_weight_grad_portable_chunked::<Self>(
-                    wrap(x),
-                    wrap(dy),
-                    &map,
-                    wshape,
-                    transposed,
-                    Self::MAX_GATHER_ELEMS,
-                )),
+                Err((x, dy)) => {
+                    portable_sparse_conv_weight_grad::<Self>(x, dy, &map, wshape, transposed)
+                }
             }
         }
     };

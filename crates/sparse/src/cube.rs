@@ -16,7 +16,7 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElement};
 use burn_fusion::stream::{Operation, OperationStreams};
-use burn_fusion::{Fusion, FusionRuntime};
+use burn_fusion::{Fusion, FusionRuntime, FusionTensor};
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, OperationOutput, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use kernel::segment_sum_kernel;
@@ -414,23 +414,35 @@ pub fn segment_sum<R: CubeRuntime>(
 /// Marks the runtime and element types an op is for, without holding any.
 type TypesOf<R, F, I, BT> = PhantomData<fn() -> (R, F, I, BT)>;
 
-/// The fusion custom op running [`segment_sum`].
-struct SegmentSumOp<R, F, I, BT> {
+/// What a [`CubeOp`] runs, with the sizes its inputs do not carry.
+#[derive(Clone, Copy, Debug)]
+enum CubeOpKind {
+    /// [`segment_sum`] of (values, order, offsets) into `n_out` rows.
+    SegmentSum { n_out: usize },
+    /// [`sparse_conv_fetch`] of (x, weight matrix, gather table) with `kv` kernel offsets.
+    SparseConv { kv: usize },
+    /// [`sparse_conv_weight_grad_fetch`] of (x, dy, gather table) with `kv` kernel offsets.
+    SparseConvWeightGrad { kv: usize },
+}
+
+/// A fusion custom op running one of this module's launchers on the raw cubecl tensors: two float
+/// inputs, one int input, one float output.
+struct CubeOp<R, F, I, BT> {
     desc: CustomOpIr,
-    n_out: usize,
+    kind: CubeOpKind,
     _backend: TypesOf<R, F, I, BT>,
 }
 
-impl<R, F, I, BT> std::fmt::Debug for SegmentSumOp<R, F, I, BT> {
+impl<R, F, I, BT> std::fmt::Debug for CubeOp<R, F, I, BT> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SegmentSumOp")
+        f.debug_struct("CubeOp")
             .field("desc", &self.desc)
-            .field("n_out", &self.n_out)
+            .field("kind", &self.kind)
             .finish()
     }
 }
 
-impl<R, F, I, BT> Operation<FusionCubeRuntime<R>> for SegmentSumOp<R, F, I, BT>
+impl<R, F, I, BT> Operation<FusionCubeRuntime<R>> for CubeOp<R, F, I, BT>
 where
     R: CubeRuntime,
     F: FloatElement,
@@ -442,13 +454,59 @@ where
         handles: &mut HandleContainer<<FusionCubeRuntime<R> as FusionRuntime>::FusionHandle>,
     ) {
         type Raw<R, F, I, BT> = CubeBackend<R, F, I, BT>;
-        let ([values, order, offsets], [out]) = self.desc.as_fixed();
-        let values = handles.get_float_tensor::<Raw<R, F, I, BT>>(values);
-        let order = handles.get_int_tensor::<Raw<R, F, I, BT>>(order);
-        let offsets = handles.get_int_tensor::<Raw<R, F, I, BT>>(offsets);
-        let result = segment_sum::<R>(values, order, offsets, self.n_out);
+        let ([a, b, c], [out]) = self.desc.as_fixed();
+        let a = handles.get_float_tensor::<Raw<R, F, I, BT>>(a);
+        let result = match self.kind {
+            CubeOpKind::SegmentSum { n_out } => {
+                let order = handles.get_int_tensor::<Raw<R, F, I, BT>>(b);
+                let offsets = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
+                segment_sum::<R>(a, order, offsets, n_out)
+            }
+            CubeOpKind::SparseConv { kv } => {
+                let w = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
+                let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
+                sparse_conv_fetch::<R>(a, table, w, kv)
+            }
+            CubeOpKind::SparseConvWeightGrad { kv } => {
+                let dy = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
+                let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
+                sparse_conv_weight_grad_fetch::<R>(a, dy, table, kv)
+            }
+        };
         handles.register_float_tensor::<Raw<R, F, I, BT>>(&out.id, result);
     }
+}
+
+/// Registers a [`CubeOp`] of `kind` on `inputs` (in the kind's order) with a float output of
+/// `shape` in the first input's float type, on the inputs' fusion stream.
+fn register_op<R, F, I, BT>(
+    name: &'static str,
+    inputs: [FusionTensor<FusionCubeRuntime<R>>; 3],
+    shape: Shape,
+    kind: CubeOpKind,
+) -> FusionTensor<FusionCubeRuntime<R>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    let [a, b, c] = inputs;
+    let client = a.client.clone();
+    let streams = OperationStreams::with_inputs([&a, &b, &c]);
+    let out = TensorIr::uninit(client.create_empty_handle(), shape, a.dtype);
+    let desc = CustomOpIr::new(name, &[a.into_ir(), b.into_ir(), c.into_ir()], &[out]);
+    client
+        .register(
+            streams,
+            OperationIr::Custom(desc.clone()),
+            CubeOp::<R, F, I, BT> {
+                desc,
+                kind,
+                _backend: PhantomData,
+            },
+        )
+        .output()
 }
 
 /// Row scatter-add ([`crate::rows`]) on a fused cubecl backend, as a [`segment_sum`] over the
@@ -470,29 +528,15 @@ where
     let order = index_tensor::<Fused<R, F, I, BT>>(plan.order(), &device).into_primitive();
     let offsets = index_tensor::<Fused<R, F, I, BT>>(plan.offsets(), &device).into_primitive();
     let values = values.into_primitive().tensor();
-    let client = values.client.clone();
-    let streams = OperationStreams::with_inputs([&values, &order, &offsets]);
-    let out = TensorIr::uninit(
-        client.create_empty_handle(),
-        Shape::new([plan.n_out(), values.shape[1]]),
-        values.dtype,
-    );
-    let desc = CustomOpIr::new(
+    let shape = Shape::new([plan.n_out(), values.shape[1]]);
+    register_op::<R, F, I, BT>(
         "occ_sparse::segment_sum",
-        &[values.into_ir(), order.into_ir(), offsets.into_ir()],
-        &[out],
-    );
-    client
-        .register(
-            streams,
-            OperationIr::Custom(desc.clone()),
-            SegmentSumOp::<R, F, I, BT> {
-                desc,
-                n_out: plan.n_out(),
-                _backend: PhantomData,
-            },
-        )
-        .output()
+        [values, order, offsets],
+        shape,
+        CubeOpKind::SegmentSum {
+            n_out: plan.n_out(),
+        },
+    )
 }
 
 /// Largest cube count along one dimension (WebGPU's limit; CUDA's y and z have the same one).
@@ -657,50 +701,6 @@ pub fn sparse_conv_weight_grad_fetch<R: CubeRuntime>(
     output
 }
 
-/// The fusion custom op running [`sparse_conv_fetch`] (`grad: false`) or
-/// [`sparse_conv_weight_grad_fetch`] (`grad: true`).
-struct SparseConvOp<R, F, I, BT> {
-    desc: CustomOpIr,
-    kv: usize,
-    grad: bool,
-    _backend: TypesOf<R, F, I, BT>,
-}
-
-impl<R, F, I, BT> std::fmt::Debug for SparseConvOp<R, F, I, BT> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SparseConvOp")
-            .field("desc", &self.desc)
-            .field("kv", &self.kv)
-            .field("grad", &self.grad)
-            .finish()
-    }
-}
-
-impl<R, F, I, BT> Operation<FusionCubeRuntime<R>> for SparseConvOp<R, F, I, BT>
-where
-    R: CubeRuntime,
-    F: FloatElement,
-    I: IntElement,
-    BT: BoolElement,
-{
-    fn execute(
-        &self,
-        handles: &mut HandleContainer<<FusionCubeRuntime<R> as FusionRuntime>::FusionHandle>,
-    ) {
-        type Raw<R, F, I, BT> = CubeBackend<R, F, I, BT>;
-        let ([a, b, table], [out]) = self.desc.as_fixed();
-        let a = handles.get_float_tensor::<Raw<R, F, I, BT>>(a);
-        let b = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
-        let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(table);
-        let result = if self.grad {
-            sparse_conv_weight_grad_fetch::<R>(a, b, table, self.kv)
-        } else {
-            sparse_conv_fetch::<R>(a, table, b, self.kv)
-        };
-        handles.register_float_tensor::<Raw<R, F, I, BT>>(&out.id, result);
-    }
-}
-
 /// How the cubecl backends compute a sparse convolution whose map has a gather table.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CubeConv {
@@ -791,30 +791,15 @@ where
     let device = w.device();
     let wm = weight_matrix(w, transposed).into_primitive().tensor();
     let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
-    let client = x.client.clone();
-    let streams = OperationStreams::with_inputs([&x, &wm, &table]);
-    let out = TensorIr::uninit(
-        client.create_empty_handle(),
-        Shape::new([map.n_out(), wm.shape[1]]),
-        x.dtype,
-    );
-    let desc = CustomOpIr::new(
+    let shape = Shape::new([map.n_out(), wm.shape[1]]);
+    Ok(register_op::<R, F, I, BT>(
         "occ_sparse::sparse_conv_fetch",
-        &[x.into_ir(), wm.into_ir(), table.into_ir()],
-        &[out],
-    );
-    Ok(client
-        .register(
-            streams,
-            OperationIr::Custom(desc.clone()),
-            SparseConvOp::<R, F, I, BT> {
-                desc,
-                kv: map.kernel_volume(),
-                grad: false,
-                _backend: PhantomData,
-            },
-        )
-        .output())
+        [x, wm, table],
+        shape,
+        CubeOpKind::SparseConv {
+            kv: map.kernel_volume(),
+        },
+    ))
 }
 
 /// Weight gradient of [`fusion_sparse_conv`] with [`sparse_conv_weight_grad_fetch`]; `Err` with
@@ -855,30 +840,12 @@ where
     let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
     let kv = map.kernel_volume();
     let (cin, cout) = (x.shape[1], dy.shape[1]);
-    let client = x.client.clone();
-    let streams = OperationStreams::with_inputs([&x, &dy, &table]);
-    let out = TensorIr::uninit(
-        client.create_empty_handle(),
-        Shape::new([kv * cin, cout]),
-        x.dtype,
-    );
-    let desc = CustomOpIr::new(
+    let dw = register_op::<R, F, I, BT>(
         "occ_sparse::sparse_conv_weight_grad_fetch",
-        &[x.into_ir(), dy.into_ir(), table.into_ir()],
-        &[out],
+        [x, dy, table],
+        Shape::new([kv * cin, cout]),
+        CubeOpKind::SparseConvWeightGrad { kv },
     );
-    let dw = client
-        .register(
-            streams,
-            OperationIr::Custom(desc.clone()),
-            SparseConvOp::<R, F, I, BT> {
-                desc,
-                kv,
-                grad: true,
-                _backend: PhantomData,
-            },
-        )
-        .output();
     let dw = BurnTensor::<Fused<R, F, I, BT>, 2>::from_primitive(TensorPrimitive::Float(dw));
     Ok(weight_from_matrix(dw, wshape, transposed)
         .into_primitive()
