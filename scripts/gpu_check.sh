@@ -7,8 +7,9 @@
 #      first pass — kernel compilation, autotuning — shows where it is);
 #   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, the same with the
 #      sparse convolutions on the gather + matrix-product path (`SPARSEOCC_CUBE_CONV=gather-gemm`, the
-#      peer of the default `#[cube]` kernels), then the three models side by side, then (SCAN=1) the
-#      memory scan.
+#      peer of the default `#[cube]` kernels), the same with the DCA sampling as burn tensor ops
+#      (`SPARSEOCC_CUBE_DCA=tensor-ops`, the peer of its `#[cube]` kernel; DCA=0 skips it), then the
+#      three models side by side, then (SCAN=1) the memory scan.
 # Kernel caches: cubecl's compiled-kernel and autotune caches (`SPARSEOCC_KERNEL_CACHE`) and the CUDA
 # driver's (`CUDA_CACHE_PATH`) live in OUT/kernel_cache/<first 16 hex of the binary's sha256>, so they
 # come back with the output; CACHE_FROM=<an earlier OUT> copies that folder in first (same binary:
@@ -66,6 +67,10 @@ step bench_pp "$T_BENCH" "$BIN" bench --config "$CFG" --models sparseocc++ \
 if [ "${GG:-1}" = 1 ]; then
   step bench_pp_gather_gemm "$T_BENCH" env SPARSEOCC_CUBE_CONV=gather-gemm "$BIN" bench \
     --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_gg.json"
+fi
+if [ "${DCA:-1}" = 1 ]; then
+  step bench_pp_dca_tensor_ops "$T_BENCH" env SPARSEOCC_CUBE_DCA=tensor-ops "$BIN" bench \
+    --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_dca_ops.json"
 fi
 if [ "${ALL:-1}" = 1 ]; then
   step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \

@@ -20,6 +20,24 @@ pub type Infer = burn_wgpu::Wgpu;
 /// Training backend.
 pub type Train = Autodiff<Infer>;
 
+/// The DCA sampling's `#[cube]` training op (forward and backward kernels) on this build's
+/// backend, whatever `SPARSEOCC_CUBE_DCA` chose for training: what `check-backend` tests it with.
+#[cfg(feature = "cuda")]
+pub fn cube_dca_train(
+    s: occ_model::kernels::DcaSample<'_, Train>,
+) -> burn::tensor::Tensor<Train, 2> {
+    occ_model::kernels::dca_cube::sample_autodiff::<cubecl::cuda::CudaRuntime, f32, i32, u8, _>(s)
+}
+
+/// The DCA sampling's `#[cube]` training op (forward and backward kernels) on this build's
+/// backend, whatever `SPARSEOCC_CUBE_DCA` chose for training: what `check-backend` tests it with.
+#[cfg(all(feature = "wgpu", not(feature = "cuda")))]
+pub fn cube_dca_train(
+    s: occ_model::kernels::DcaSample<'_, Train>,
+) -> burn::tensor::Tensor<Train, 2> {
+    occ_model::kernels::dca_cube::sample_autodiff::<burn_wgpu::WgpuRuntime, f32, i32, u32, _>(s)
+}
+
 /// `bench`'s default warm-up frames. On the cubecl backends two: burn-fusion explores the first
 /// pass over a frame's operations and stores execution plans, later passes run the stored plans,
 /// which can cut the stream into other fused blocks and so compile a few kernels once more
@@ -39,7 +57,11 @@ pub fn device() -> burn::tensor::Device<Infer> {
 /// Human-readable device and precision, for logs and benchmark tables.
 pub fn describe() -> String {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
-    let conv = occ_sparse::cube::CubeConv::current().as_str();
+    let conv = format!(
+        "{}, dca {}",
+        occ_sparse::cube::CubeConv::current().as_str(),
+        occ_model::kernels::dca_cube::CubeDca::current().as_str()
+    );
     #[cfg(not(any(feature = "cuda", feature = "wgpu")))]
     let conv = "";
     if cfg!(feature = "cuda") {

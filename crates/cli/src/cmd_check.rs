@@ -1135,7 +1135,11 @@ fn dca_inputs() -> DcaCase {
 
 /// DCA sampling on the autodiff backend `Bk`: the output, then the gradients of `sum(y²)` with
 /// respect to the two value maps, the offsets, the weights and the gate, all flattened.
-fn dca_run<Bk>(case: &DcaCase, device: &burn::tensor::Device<Bk>) -> Result<Vec<Vec<f32>>>
+fn dca_run<Bk>(
+    case: &DcaCase,
+    device: &burn::tensor::Device<Bk>,
+    sample: impl Fn(occ_model::kernels::DcaSample<'_, Bk>) -> Tensor<Bk, 2>,
+) -> Result<Vec<Vec<f32>>>
 where
     Bk: burn::tensor::backend::AutodiffBackend + occ_model::kernels::ModelBackend,
 {
@@ -1147,7 +1151,7 @@ where
     let offsets = Tensor::<Bk, 5>::from_data(case.offsets.clone(), device).require_grad();
     let weights = Tensor::<Bk, 4>::from_data(case.weights.clone(), device).require_grad();
     let gate = Tensor::<Bk, 1>::from_data(case.gate.clone(), device).require_grad();
-    let y = Bk::dca_sample(occ_model::kernels::DcaSample {
+    let y = sample(occ_model::kernels::DcaSample {
         hits: &case.hits,
         strides: &case.strides,
         values: values.clone(),
@@ -1172,15 +1176,43 @@ where
     Ok(out)
 }
 
+/// The DCA sampling forward on the inference backend `Bk` (no autodiff), flattened.
+fn dca_forward<Bk: occ_model::kernels::ModelBackend>(
+    case: &DcaCase,
+    device: &burn::tensor::Device<Bk>,
+) -> Vec<f32> {
+    let y = Bk::dca_sample(occ_model::kernels::DcaSample {
+        hits: &case.hits,
+        strides: &case.strides,
+        values: case
+            .values
+            .iter()
+            .map(|v| Tensor::from_data(v.clone(), device))
+            .collect(),
+        offsets: Tensor::from_data(case.offsets.clone(), device),
+        weights: Tensor::from_data(case.weights.clone(), device),
+        gate: Some(Tensor::from_data(case.gate.clone(), device)),
+    });
+    to_vec(y)
+}
+
 /// The DCA sampling op on the backend under test against the NdArray reference: the largest
-/// relative error over the output and every gradient, and its JSON entry.
+/// relative error over the output and every gradient, and its JSON entry. Checked: the inference
+/// forward (`inference_forward`), the shipped training path (`forward`, `grad_*`) and, on the
+/// cubecl builds, the `#[cube]` training op whatever the shipped choice (`cube_train_*`).
 fn dca_case(
     cpu_dev: &burn::tensor::Device<Cpu>,
     dev: &burn::tensor::Device<Infer>,
 ) -> Result<(f64, serde_json::Value)> {
+    use occ_model::kernels::ModelBackend;
     let case = dca_inputs();
-    let reference = dca_run::<Autodiff<Cpu>>(&case, cpu_dev)?;
-    let tested = dca_run::<Train>(&case, dev)?;
+    let reference = dca_run::<Autodiff<Cpu>>(&case, cpu_dev, <Autodiff<Cpu>>::dca_sample)?;
+    let mut runs = vec![("", dca_run::<Train>(&case, dev, Train::dca_sample)?)];
+    #[cfg(any(feature = "cuda", feature = "wgpu"))]
+    runs.push((
+        "cube_train_",
+        dca_run::<Train>(&case, dev, backend::cube_dca_train)?,
+    ));
     let names = [
         "forward",
         "grad_values_l0",
@@ -1190,13 +1222,17 @@ fn dca_case(
         "grad_gate",
     ];
     let mut entry = serde_json::json!({"case": "dca_sample", "hits": case.hits.len()});
-    let mut worst = 0f64;
-    let mut line = String::new();
-    for ((name, a), b) in names.iter().zip(&tested).zip(&reference) {
-        let e = rel_err(a, b);
-        worst = worst.max(e);
-        entry[*name] = serde_json::json!(e);
-        line.push_str(&format!(", {name} {e:.2e}"));
+    let e = rel_err(&dca_forward::<Infer>(&case, dev), &reference[0]);
+    let mut worst = e;
+    entry["inference_forward"] = serde_json::json!(e);
+    let mut line = format!(", inference_forward {e:.2e}");
+    for (prefix, tested) in &runs {
+        for ((name, a), b) in names.iter().zip(tested).zip(&reference) {
+            let e = rel_err(a, b);
+            worst = worst.max(e);
+            entry[format!("{prefix}{name}")] = serde_json::json!(e);
+            line.push_str(&format!(", {prefix}{name} {e:.2e}"));
+        }
     }
     eprintln!("dca_sample: {} hits{line}", case.hits.len());
     Ok((worst, entry))

@@ -9,7 +9,7 @@ use crate::kernel_map::KernelMap;
 use crate::rows::RowPlan;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Int, Shape, Tensor as BurnTensor, TensorPrimitive};
+use burn::tensor::{DType, Int, Shape, Tensor as BurnTensor, TensorPrimitive};
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
@@ -17,10 +17,11 @@ use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElement};
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::{Fusion, FusionRuntime, FusionTensor};
-use burn_ir::{CustomOpIr, HandleContainer, OperationIr, OperationOutput, TensorIr};
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use kernel::segment_sum_kernel;
 use std::marker::PhantomData;
+use std::sync::Arc;
 
 mod kernel {
     use cubecl::prelude::*;
@@ -414,31 +415,21 @@ pub fn segment_sum<R: CubeRuntime>(
 /// Marks the runtime and element types an op is for, without holding any.
 type TypesOf<R, F, I, BT> = PhantomData<fn() -> (R, F, I, BT)>;
 
-/// What a [`CubeOp`] runs, with the sizes its inputs do not carry.
-#[derive(Clone, Copy, Debug)]
-enum CubeOpKind {
-    /// [`segment_sum`] of (values, order, offsets) into `n_out` rows.
-    SegmentSum { n_out: usize },
-    /// [`sparse_conv_fetch`] of (x, weight matrix, gather table) with `kv` kernel offsets.
-    SparseConv { kv: usize },
-    /// [`sparse_conv_weight_grad_fetch`] of (x, dy, gather table) with `kv` kernel offsets.
-    SparseConvWeightGrad { kv: usize },
-}
+/// What a [`register_cube_op`] op runs: the raw cubecl tensors of its inputs, in order (float,
+/// int and bool alike), to its outputs, in order.
+pub type CubeLauncher<R> = Arc<dyn Fn(Vec<CubeTensor<R>>) -> Vec<CubeTensor<R>> + Send + Sync>;
 
-/// A fusion custom op running one of this module's launchers on the raw cubecl tensors: two float
-/// inputs, one int input, one float output.
-struct CubeOp<R, F, I, BT> {
+/// A fusion custom op running a [`CubeLauncher`] on the raw cubecl tensors of its inputs, inside
+/// the fused stream (burn's backend-extension pattern for `Fusion<CubeBackend>`).
+struct CubeOp<R: CubeRuntime, F, I, BT> {
     desc: CustomOpIr,
-    kind: CubeOpKind,
+    launch: CubeLauncher<R>,
     _backend: TypesOf<R, F, I, BT>,
 }
 
-impl<R, F, I, BT> std::fmt::Debug for CubeOp<R, F, I, BT> {
+impl<R: CubeRuntime, F, I, BT> std::fmt::Debug for CubeOp<R, F, I, BT> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("CubeOp")
-            .field("desc", &self.desc)
-            .field("kind", &self.kind)
-            .finish()
+        f.debug_struct("CubeOp").field("desc", &self.desc).finish()
     }
 }
 
@@ -454,36 +445,73 @@ where
         handles: &mut HandleContainer<<FusionCubeRuntime<R> as FusionRuntime>::FusionHandle>,
     ) {
         type Raw<R, F, I, BT> = CubeBackend<R, F, I, BT>;
-        let ([a, b, c], [out]) = self.desc.as_fixed();
-        let a = handles.get_float_tensor::<Raw<R, F, I, BT>>(a);
-        let result = match self.kind {
-            CubeOpKind::SegmentSum { n_out } => {
-                let order = handles.get_int_tensor::<Raw<R, F, I, BT>>(b);
-                let offsets = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
-                segment_sum::<R>(a, order, offsets, n_out)
-            }
-            CubeOpKind::SparseConv { kv } => {
-                let w = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
-                let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
-                sparse_conv_fetch::<R>(a, table, w, kv)
-            }
-            CubeOpKind::SparseConvWeightGrad { kv } => {
-                let dy = handles.get_float_tensor::<Raw<R, F, I, BT>>(b);
-                let table = handles.get_int_tensor::<Raw<R, F, I, BT>>(c);
-                sparse_conv_weight_grad_fetch::<R>(a, dy, table, kv)
-            }
-        };
-        handles.register_float_tensor::<Raw<R, F, I, BT>>(&out.id, result);
+        // A cubecl tensor is the same handle whatever its kind (its dtype travels with it).
+        let inputs = self
+            .desc
+            .inputs
+            .iter()
+            .map(|t| handles.get_float_tensor::<Raw<R, F, I, BT>>(t))
+            .collect();
+        let results = (self.launch)(inputs);
+        assert_eq!(
+            results.len(),
+            self.desc.outputs.len(),
+            "{}: the launcher returned {} tensors for {} outputs",
+            self.desc.id,
+            results.len(),
+            self.desc.outputs.len()
+        );
+        for (out, result) in self.desc.outputs.iter().zip(results) {
+            handles.register_float_tensor::<Raw<R, F, I, BT>>(&out.id, result);
+        }
     }
 }
 
-/// Registers a [`CubeOp`] of `kind` on `inputs` (in the kind's order) with a float output of
-/// `shape` in the first input's float type, on the inputs' fusion stream.
-fn register_op<R, F, I, BT>(
+/// Registers a fusion custom op named `name` that runs `launch` on `inputs` and yields one tensor
+/// per `outputs` entry (its shape and dtype), on the inputs' fusion streams. How the sparse
+/// library's kernels, and those of crates above it (the model's DCA sampling), enter a fused
+/// cubecl backend.
+pub fn register_cube_op<R, F, I, BT>(
     name: &'static str,
-    inputs: [FusionTensor<FusionCubeRuntime<R>>; 3],
+    inputs: Vec<FusionTensor<FusionCubeRuntime<R>>>,
+    outputs: &[(Shape, DType)],
+    launch: CubeLauncher<R>,
+) -> Vec<FusionTensor<FusionCubeRuntime<R>>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    let client = inputs
+        .first()
+        .expect("a cube op has at least one input")
+        .client
+        .clone();
+    let streams = OperationStreams::with_inputs(inputs.iter());
+    let outs: Vec<TensorIr> = outputs
+        .iter()
+        .map(|(shape, dtype)| TensorIr::uninit(client.create_empty_handle(), shape.clone(), *dtype))
+        .collect();
+    let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
+    let desc = CustomOpIr::new(name, &irs, &outs);
+    client.register(
+        streams,
+        OperationIr::Custom(desc.clone()),
+        CubeOp::<R, F, I, BT> {
+            desc,
+            launch,
+            _backend: PhantomData,
+        },
+    )
+}
+
+/// [`register_cube_op`] with one output of `shape` in the first input's dtype.
+fn register_one<R, F, I, BT>(
+    name: &'static str,
+    inputs: Vec<FusionTensor<FusionCubeRuntime<R>>>,
     shape: Shape,
-    kind: CubeOpKind,
+    launch: impl Fn(Vec<CubeTensor<R>>) -> CubeTensor<R> + Send + Sync + 'static,
 ) -> FusionTensor<FusionCubeRuntime<R>>
 where
     R: CubeRuntime,
@@ -491,22 +519,25 @@ where
     I: IntElement,
     BT: BoolElement,
 {
-    let [a, b, c] = inputs;
-    let client = a.client.clone();
-    let streams = OperationStreams::with_inputs([&a, &b, &c]);
-    let out = TensorIr::uninit(client.create_empty_handle(), shape, a.dtype);
-    let desc = CustomOpIr::new(name, &[a.into_ir(), b.into_ir(), c.into_ir()], &[out]);
-    client
-        .register(
-            streams,
-            OperationIr::Custom(desc.clone()),
-            CubeOp::<R, F, I, BT> {
-                desc,
-                kind,
-                _backend: PhantomData,
-            },
-        )
-        .output()
+    let dtype = inputs
+        .first()
+        .expect("a cube op has at least one input")
+        .dtype;
+    register_cube_op::<R, F, I, BT>(
+        name,
+        inputs,
+        &[(shape, dtype)],
+        Arc::new(move |t| vec![launch(t)]),
+    )
+    .pop()
+    .expect("one output")
+}
+
+/// The `N` inputs a launcher was registered with.
+pub fn inputs_of<R: CubeRuntime, const N: usize>(t: Vec<CubeTensor<R>>) -> [CubeTensor<R>; N] {
+    let n = t.len();
+    t.try_into()
+        .unwrap_or_else(|_| panic!("a cube op registered with {N} inputs got {n}"))
 }
 
 /// Row scatter-add ([`crate::rows`]) on a fused cubecl backend, as a [`segment_sum`] over the
@@ -529,12 +560,14 @@ where
     let offsets = index_tensor::<Fused<R, F, I, BT>>(plan.offsets(), &device).into_primitive();
     let values = values.into_primitive().tensor();
     let shape = Shape::new([plan.n_out(), values.shape[1]]);
-    register_op::<R, F, I, BT>(
+    let n_out = plan.n_out();
+    register_one::<R, F, I, BT>(
         "occ_sparse::segment_sum",
-        [values, order, offsets],
+        vec![values, order, offsets],
         shape,
-        CubeOpKind::SegmentSum {
-            n_out: plan.n_out(),
+        move |t| {
+            let [values, order, offsets] = inputs_of(t);
+            segment_sum(values, order, offsets, n_out)
         },
     )
 }
@@ -792,12 +825,14 @@ where
     let wm = weight_matrix(w, transposed).into_primitive().tensor();
     let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
     let shape = Shape::new([map.n_out(), wm.shape[1]]);
-    Ok(register_op::<R, F, I, BT>(
+    let kv = map.kernel_volume();
+    Ok(register_one::<R, F, I, BT>(
         "occ_sparse::sparse_conv_fetch",
-        [x, wm, table],
+        vec![x, wm, table],
         shape,
-        CubeOpKind::SparseConv {
-            kv: map.kernel_volume(),
+        move |t| {
+            let [x, w, table] = inputs_of(t);
+            sparse_conv_fetch(x, table, w, kv)
         },
     ))
 }
@@ -840,11 +875,14 @@ where
     let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
     let kv = map.kernel_volume();
     let (cin, cout) = (x.shape[1], dy.shape[1]);
-    let dw = register_op::<R, F, I, BT>(
+    let dw = register_one::<R, F, I, BT>(
         "occ_sparse::sparse_conv_weight_grad_fetch",
-        [x, dy, table],
+        vec![x, dy, table],
         Shape::new([kv * cin, cout]),
-        CubeOpKind::SparseConvWeightGrad { kv },
+        move |t| {
+            let [x, dy, table] = inputs_of(t);
+            sparse_conv_weight_grad_fetch(x, dy, table, kv)
+        },
     );
     let dw = BurnTensor::<Fused<R, F, I, BT>, 2>::from_primitive(TensorPrimitive::Float(dw));
     Ok(weight_from_matrix(dw, wshape, transposed)

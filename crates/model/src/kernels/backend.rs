@@ -228,10 +228,42 @@ impl<B: ModelBackend, C: CheckpointStrategy> ModelBackend for Autodiff<B, C> {
     }
 }
 
-/// CUDA: the portable defaults (burn's ops, run by cubecl kernels).
-#[cfg(feature = "cuda")]
-impl ModelBackend for burn_cuda::Cuda {}
+/// The cubecl backends: the DCA sampling as `#[cube]` kernels in inference (and, with
+/// `SPARSEOCC_CUBE_DCA=cube-train`, in training; see [`crate::kernels::dca_cube::CubeDca`]), the
+/// rest portable.
+#[cfg(feature = "cube")]
+macro_rules! cube_model_backend {
+    ($runtime:ty, $f:ty, $i:ty, $b:ty) => {
+        fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
+            use crate::kernels::dca_cube::CubeDca;
+            if CubeDca::current() != CubeDca::TensorOps {
+                crate::kernels::dca_cube::sample::<$runtime, $f, $i, $b>(s)
+            } else {
+                dca::sample_tensor_ops(s)
+            }
+        }
 
-/// WebGPU (WGSL; lavapipe on a machine without a GPU): the portable defaults.
+        fn dca_sample_autodiff<C: CheckpointStrategy>(
+            s: DcaSample<'_, Autodiff<Self, C>>,
+        ) -> Tensor<Autodiff<Self, C>, 2> {
+            use crate::kernels::dca_cube::CubeDca;
+            if CubeDca::current() == CubeDca::InferenceAndTraining {
+                crate::kernels::dca_cube::sample_autodiff::<$runtime, $f, $i, $b, C>(s)
+            } else {
+                dca::sample_tensor_ops(s)
+            }
+        }
+    };
+}
+
+/// CUDA: the DCA kernels, otherwise the portable defaults (burn's ops, run by cubecl kernels).
+#[cfg(feature = "cuda")]
+impl ModelBackend for burn_cuda::Cuda {
+    cube_model_backend!(cubecl::cuda::CudaRuntime, f32, i32, u8);
+}
+
+/// WebGPU (WGSL; lavapipe on a machine without a GPU): as CUDA.
 #[cfg(feature = "wgpu")]
-impl ModelBackend for burn_wgpu::Wgpu {}
+impl ModelBackend for burn_wgpu::Wgpu {
+    cube_model_backend!(burn_wgpu::WgpuRuntime, f32, i32, u32);
+}

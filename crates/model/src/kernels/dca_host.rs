@@ -55,11 +55,14 @@ pub(crate) struct SampleLayout {
     /// Rows of the flat value matrix `[R, D]` (all levels, all images).
     pub num_rows: usize,
     /// Hits of query `q`: `order[start[q]..start[q + 1]]` (indices into the hit arrays).
-    start: Vec<usize>,
-    order: Vec<usize>,
-    image: Vec<u32>,
-    uv: Vec<[f64; 2]>,
-    views: Vec<u32>,
+    pub start: Vec<usize>,
+    pub order: Vec<usize>,
+    /// Image index of each hit.
+    pub image: Vec<u32>,
+    /// Reference point of each hit, network-input pixels.
+    pub uv: Vec<[f64; 2]>,
+    /// Views that see each query.
+    pub views: Vec<u32>,
 }
 
 impl SampleLayout {
@@ -122,7 +125,7 @@ impl SampleLayout {
         }
     }
 
-    fn num_hits(&self) -> usize {
+    pub fn num_hits(&self) -> usize {
         self.image.len()
     }
 
@@ -314,7 +317,7 @@ pub(crate) struct Saved<T> {
 
 /// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
 /// row, column order; `D` head-major), the layout of [`SampleLayout`].
-fn value_rows<B: Backend>(values: Vec<Tensor<B, 4>>) -> Tensor<B, 2> {
+pub(crate) fn value_rows<B: Backend>(values: Vec<Tensor<B, 4>>) -> Tensor<B, 2> {
     let rows: Vec<Tensor<B, 2>> = values
         .into_iter()
         .map(|v| {

@@ -9,6 +9,8 @@
 //!   and the convolution as one autodiff op for CPU training.
 //! - [`dca`]: the DCA sampling op's inputs ([`DcaSample`], [`ViewHits`]) and its portable form.
 //! - `dca_host`: the DCA sampling step and its backward pass as host loops.
+//! - `dca_cube` (features `cuda` / `wgpu`): the same step and its backward as `#[cube]` kernels for
+//!   the cubecl backends, registered as burn-fusion custom ops.
 //! - `rows_host`: linear layers (bias and ReLU fused), LayerNorm and softmax as row-wise host loops
 //!   for inference.
 //! - [`host_data`]: zero-copy access to the NdArray backend's tensors for the host kernels.
@@ -19,6 +21,8 @@
 mod backend;
 pub mod conv2d_host;
 pub mod dca;
+#[cfg(feature = "cube")]
+pub mod dca_cube;
 pub(crate) mod dca_host;
 pub mod host_data;
 pub(crate) mod rows_host;
