@@ -1207,6 +1207,7 @@ fn dca_case(
     use occ_model::kernels::ModelBackend;
     let case = dca_inputs();
     let reference = dca_run::<Autodiff<Cpu>>(&case, cpu_dev, <Autodiff<Cpu>>::dca_sample)?;
+    #[cfg_attr(not(any(feature = "cuda", feature = "wgpu")), allow(unused_mut))]
     let mut runs = vec![("", dca_run::<Train>(&case, dev, Train::dca_sample)?)];
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
     runs.push((
