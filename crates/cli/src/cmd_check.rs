@@ -78,6 +78,12 @@ pub struct CheckArgs {
     /// count fails when no new frame changed the voxel count: then it tested nothing.
     #[arg(long, default_value_t = 3)]
     pub seed: u64,
+    /// Seed of the model weights of the warm-up runs only (default: `--seed`): kernels follow
+    /// shapes and configurations, not weight values, so warming up with weights that keep other
+    /// voxels (`21` keeps the whole grid) tests whether a warm-up's voxel set leaves kernels
+    /// uncompiled.
+    #[arg(long)]
+    pub warmup_seed: Option<u64>,
 }
 
 fn lcg(seed: u64) -> impl FnMut() -> f32 {
@@ -179,7 +185,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     count_panics();
     let dev = backend::device();
     if args.compiles_only {
-        let compiles = compile_counts(&dev, args.frames, args.seed)?;
+        let compiles = compile_counts(&dev, args.frames, args.seed, args.warmup_seed)?;
         let after_warmup = compiles.new_frames.first().copied().flatten();
         if let Some(p) = &args.json {
             crate::util::write_json(
@@ -510,7 +516,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         "logits_beyond_tolerance": beyond, "stages": stage_cases,
         "finite": finite, "first_call_ms": first_ms}),
     );
-    let compiles = compile_counts(&dev, args.frames, args.seed)?;
+    let compiles = compile_counts(&dev, args.frames, args.seed, args.warmup_seed)?;
     let compiles_after_warmup = compiles.new_frames.first().copied().flatten();
 
     // One SparseOcc++ training step (forward with labels, the losses, backward) against the
@@ -719,6 +725,7 @@ fn compile_counts(
     dev: &burn::tensor::Device<Infer>,
     frames: usize,
     seed: u64,
+    warmup_seed: Option<u64>,
 ) -> Result<CompileCounts> {
     let default_cfg =
         occ_train::RunConfig::from_toml(occ_train::config::SYNTHETIC_TINY, "synthetic_tiny")?;
@@ -727,8 +734,16 @@ fn compile_counts(
     // 2-3 kernels on a frame of about 262,100 voxels, none of 4 compile-only runs did).
     <Infer as Backend>::seed(dev, seed);
     let model = default_cfg.model.init::<Infer>(dev)?;
+    let warm = match warmup_seed.filter(|&w| w != seed) {
+        Some(w) => {
+            <Infer as Backend>::seed(dev, w);
+            Some(default_cfg.model.init::<Infer>(dev)?)
+        }
+        None => None,
+    };
+    let warm = warm.as_ref().unwrap_or(&model);
     let log = std::env::var_os("SPARSEOCC_LOG_COMPILES").is_some();
-    let first = model.forward(&tiny_batch(frame(21), None, dev))?;
+    let first = warm.forward(&tiny_batch(frame(21), None, dev))?;
     let mut voxels = first.coords.len();
     let mut voxel_counts = vec![voxels];
     let _ = to_vec(first.logits);
@@ -744,7 +759,8 @@ fn compile_counts(
             );
         }
         let t0 = Instant::now();
-        let out = model.forward(&tiny_batch(frame(seed), None, dev))?;
+        let net = if run == 0 { warm } else { &model };
+        let out = net.forward(&tiny_batch(frame(seed), None, dev))?;
         let _ = to_vec(out.logits);
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let after = backend::settled_kernel_compilations();

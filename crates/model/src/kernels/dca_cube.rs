@@ -821,6 +821,10 @@ where
     let layout = SampleLayout::of(&s);
     let dims = Dims::of(&layout);
     let device = s.offsets.device();
+    if dims.hits == 0 {
+        // No view sees any query: every output is zero (and no buffer is empty).
+        return Tensor::zeros([dims.n, dims.d], &device);
+    }
     let (lay, aux) = layout_tensors::<Fused<R, F, I, BT>>(&layout, &s.hits.query, &device);
     let (lay, aux) = (lay.into_primitive(), aux.into_primitive().tensor());
     let gate = s.gate.unwrap_or_else(|| Tensor::ones([dims.hits], &device));
@@ -880,6 +884,10 @@ where
     let layout = SampleLayout::of(&s);
     let dims = Dims::of(&layout);
     let device = s.offsets.device();
+    if dims.hits == 0 {
+        // No view sees any query: the output is zero and so is every gradient through it.
+        return Tensor::zeros([dims.n, dims.d], &device);
+    }
     let (lay, aux) = layout_tensors::<Ad<R, F, I, BT, C>>(&layout, &s.hits.query, &device);
     // The layout is no parent of the op: its inner tensors go in as they are.
     let (lay, aux) = (
