@@ -58,8 +58,9 @@ pub fn device() -> burn::tensor::Device<Infer> {
 pub fn describe() -> String {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
     let conv = format!(
-        "{}, dca {}",
+        "{}, maps {}, dca {}",
         occ_sparse::cube::CubeConv::current().as_str(),
+        occ_sparse::cube::CubeMaps::current().as_str(),
         occ_model::kernels::dca_cube::CubeDca::current().as_str()
     );
     #[cfg(not(any(feature = "cuda", feature = "wgpu")))]

@@ -3,8 +3,11 @@
 //! GPU) against the NdArray CPU reference computed in f64 (the device in f32), on the same inputs
 //! and weights:
 //!
+//! - kernel maps: the gather tables the backend builds on its device from deferred maps, entry for
+//!   entry against the host's (`map_tables`);
 //! - sparse convolutions (submanifold 3x3x3, strided regular, transposed) forward, and the gradient
-//!   with respect to the input features and weights through autodiff;
+//!   with respect to the input features and weights through autodiff, on deferred maps (so on
+//!   device-built tables where the backend builds them);
 //! - the image encoder (ResNet + FPN), weights copied through a checkpoint file; its convolutions
 //!   (forward, dx, dw, db, as the model computes them, with burn's own conv2d reported beside) and
 //!   its other ops (nearest upsampling, max pool, BatchNorm) one by one;
@@ -36,7 +39,8 @@ use burn::tensor::TensorData;
 use occ_model::encoder::backbone::ResNetConfig;
 use occ_model::encoder::fpn::{FpnConfig, ImageEncoderConfig};
 use occ_sparse::backend::sparse_conv;
-use occ_sparse::kernel_map::{conv_map, MapKind};
+use occ_sparse::backend::SparseConvBackend;
+use occ_sparse::kernel_map::{conv_map, conv_map_deferred, MapKind};
 use occ_sparse::{ConvGeometry, CoordSet};
 use std::sync::Arc;
 use std::time::Instant;
@@ -160,6 +164,81 @@ fn rel_err(a: &[f32], b: &[f32]) -> f64 {
     d / scale
 }
 
+/// Builds the maps of every kind of convolution (submanifold, regular, strided, transposed with
+/// output padding, dilated; each map and its transpose) deferred, on a dense scene and on a sparse
+/// one, and compares each gather table the backend builds on its device with the host's, entry
+/// for entry. Returns the entries that differ and the tables compared (0 where the backend has no
+/// device tables: the CPU build).
+fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize, usize)> {
+    let dense = scene();
+    let mut rnd = lcg(5);
+    let mut sparse: Vec<[i32; 4]> = (0..3000)
+        .map(|_| {
+            let mut r = |n: f32| ((rnd() * 0.5 + 0.5) * n).clamp(0.0, n - 1.0) as i32;
+            [r(2.0), r(300.0), r(280.0), r(24.0)]
+        })
+        .collect();
+    sparse.sort_unstable();
+    sparse.dedup();
+    let kinds = [
+        (MapKind::Submanifold, ConvGeometry::new([3, 3, 3])),
+        (
+            MapKind::Submanifold,
+            ConvGeometry::new([5, 3, 1]).with_dilation([2, 1, 1]),
+        ),
+        (
+            MapKind::Regular,
+            ConvGeometry::new([3, 3, 3]).with_padding([1; 3]),
+        ),
+        (
+            MapKind::Regular,
+            ConvGeometry::new([3, 3, 3])
+                .with_stride([2; 3])
+                .with_padding([1; 3]),
+        ),
+        (
+            MapKind::Regular,
+            ConvGeometry::new([2, 2, 2]).with_stride([2; 3]),
+        ),
+        (
+            MapKind::Transposed {
+                output_padding: [1, 0, 1],
+            },
+            ConvGeometry::new([3, 2, 3])
+                .with_stride([2, 2, 1])
+                .with_padding([1, 0, 1]),
+        ),
+    ];
+    let (mut mismatches, mut tables) = (0, 0);
+    for (coords, shape, batch) in [(dense, [128, 128, 16], 1), (sparse, [300, 280, 24], 2)] {
+        for (kind, geom) in kinds {
+            let host_set = Arc::new(CoordSet::new(coords.clone(), shape, batch)?);
+            let device_set = Arc::new(CoordSet::new(coords.clone(), shape, batch)?);
+            let (_, host) = conv_map(&host_set, kind, geom)?;
+            let (_, deferred) = conv_map_deferred(&device_set, kind, geom)?;
+            for (h, d) in [
+                (host.clone(), deferred.clone()),
+                (host.transposed(), deferred.transposed()),
+            ] {
+                let Some(table) = B::device_gather_table(&d, dev) else {
+                    return Ok((0, 0));
+                };
+                if d.has_host_pairs() {
+                    bail!("map_tables: the table of {kind:?} {geom:?} came from host pairs");
+                }
+                let want = h.gather_table().context("a conv map has a gather table")?;
+                mismatches += if table.len() == want.len() {
+                    table.iter().zip(want).filter(|(a, b)| a != b).count()
+                } else {
+                    table.len().max(want.len())
+                };
+                tables += 1;
+            }
+        }
+    }
+    Ok((mismatches, tables))
+}
+
 fn to_vec<B: Backend, const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
     t.into_data()
         .convert::<f32>()
@@ -203,9 +282,20 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     let c = 32usize;
     let mut rnd = lcg(11);
     let feats: Vec<f32> = (0..n * c).map(|_| rnd()).collect();
-    let set = Arc::new(CoordSet::new(coords, [128, 128, 16], 1)?);
+    let set = Arc::new(CoordSet::new(coords.clone(), [128, 128, 16], 1)?);
+    // The device's maps are deferred (no host pairs), so a cubecl backend builds their tables
+    // itself, as the models get them; the reference's are built on the host.
+    let device_set = Arc::new(CoordSet::new(coords, [128, 128, 16], 1)?);
     let mut results = Vec::new();
     let mut worst = 0f64;
+    let (mismatches, map_cases) = map_table_mismatches::<Train>(&dev)?;
+    if map_cases > 0 {
+        eprintln!(
+            "map_tables: {map_cases} gather tables built on the device, {mismatches} entries differ from the host's"
+        );
+        worst = worst.max(if mismatches == 0 { 0.0 } else { 1.0 });
+        results.push(serde_json::json!({"case": "map_tables", "tables": map_cases, "mismatches": mismatches}));
+    }
     // (name, map kind, geometry, transposed, C_in, C_out); 19 -> 37 channels leaves partial tiles
     // in the cubecl kernels (16 x 16).
     let cases = [
@@ -247,6 +337,12 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     for (name, kind, geom, transposed, cin, cout) in cases {
         let (_, map) = conv_map(&set, kind, geom)?;
         let map = if transposed { map.transposed() } else { map };
+        let (_, device_map) = conv_map_deferred(&device_set, kind, geom)?;
+        let device_map = if transposed {
+            device_map.transposed()
+        } else {
+            device_map
+        };
         let kv = geom.volume();
         let w: Vec<f32> = (0..cin * kv * cout).map(|_| rnd() * 0.1).collect();
         let n_in = if transposed { map.n_in() } else { n };
@@ -270,7 +366,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         // The backend under test.
         let xt = Tensor::<Train, 2>::from_data(x_data, &dev).require_grad();
         let wt = Tensor::<Train, 3>::from_data(w_data, &dev).require_grad();
-        let yt = sparse_conv(xt.clone(), wt.clone(), map.clone(), transposed);
+        let yt = sparse_conv(xt.clone(), wt.clone(), device_map, transposed);
         let gt = yt.clone().powf_scalar(2.0).sum().backward();
         let (e_y, e_gx, e_gw) = (
             rel_err(&to_vec(yt), &yr_v),

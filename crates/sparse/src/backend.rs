@@ -404,6 +404,24 @@ pub trait SparseConvBackend: Backend {
     /// backends' by default, none on the CPU.
     const ROW_BUCKET: RowBucket = RowBucket::CUBECL;
 
+    /// Whether this backend builds kernel-map tables on its own device from the maps' sites
+    /// ([`crate::kernel_map::conv_map_deferred`]), so that the host builds no pairs. The host
+    /// builds them by default.
+    fn builds_maps_on_device() -> bool {
+        false
+    }
+
+    /// The gather table this backend computes `map` with on `device`, read back to the host: the
+    /// check of device-built tables (`sparseocc check-backend`). `None` for a backend that has no
+    /// device table of its own (the default).
+    fn device_gather_table(
+        map: &KernelMap,
+        device: &burn::tensor::Device<Self>,
+    ) -> Option<Vec<u32>> {
+        let _ = (map, device);
+        None
+    }
+
     /// `y[o] += W_k x[i]` over the pairs of `map`.
     ///
     /// # Shapes
@@ -648,6 +666,18 @@ where
 #[cfg(feature = "cube")]
 macro_rules! cube_sparse_conv {
     ($runtime:ty, $f:ty, $i:ty, $b:ty) => {
+        fn builds_maps_on_device() -> bool {
+            crate::cube::CubeConv::current() == crate::cube::CubeConv::Fetch
+                && crate::cube::CubeMaps::current() == crate::cube::CubeMaps::Device
+        }
+
+        fn device_gather_table(
+            map: &KernelMap,
+            device: &burn::tensor::Device<Self>,
+        ) -> Option<Vec<u32>> {
+            crate::cube::read_device_gather_table::<$runtime, $f, $i, $b>(map, device)
+        }
+
         fn sparse_conv(
             x: FloatTensor<Self>,
             w: FloatTensor<Self>,
@@ -797,6 +827,17 @@ fn autodiff_row_op<B: SparseConvBackend, C: CheckpointStrategy>(
 impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
     const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
     const ROW_BUCKET: RowBucket = B::ROW_BUCKET;
+
+    fn builds_maps_on_device() -> bool {
+        B::builds_maps_on_device()
+    }
+
+    fn device_gather_table(
+        map: &KernelMap,
+        device: &burn::tensor::Device<Self>,
+    ) -> Option<Vec<u32>> {
+        B::device_gather_table(map, device)
+    }
 
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         autodiff_row_op::<B, C>(RowOp::ScatterAdd, values, plan)

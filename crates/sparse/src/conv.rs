@@ -5,7 +5,7 @@
 
 use crate::backend::{sparse_conv, SparseConvBackend};
 use crate::error::SparseError;
-use crate::kernel_map::{conv_map, inverse_of, ConvGeometry, MapKind};
+use crate::kernel_map::{conv_map, conv_map_deferred, inverse_of, ConvGeometry, MapKind};
 use crate::tensor::SparseTensor;
 use burn::module::{Initializer, Param};
 use burn::prelude::*;
@@ -166,14 +166,23 @@ pub fn sparse_conv3d<B: SparseConvBackend>(
         }
     }
     let set = input.coord_set().clone();
+    // A backend that builds its tables on its device gets maps without host pairs.
+    let build = if B::builds_maps_on_device() {
+        conv_map_deferred
+    } else {
+        conv_map
+    };
     let (out_set, map) = match kind {
-        ConvKind::Submanifold => conv_map(&set, MapKind::Submanifold, geometry)?,
-        ConvKind::Regular => conv_map(&set, MapKind::Regular, geometry)?,
-        ConvKind::Transposed => conv_map(&set, MapKind::Transposed { output_padding }, geometry)?,
+        ConvKind::Submanifold => build(&set, MapKind::Submanifold, geometry)?,
+        ConvKind::Regular => build(&set, MapKind::Regular, geometry)?,
+        ConvKind::Transposed => build(&set, MapKind::Transposed { output_padding }, geometry)?,
         ConvKind::Inverse => inverse_of(&set, geometry)?,
     };
     let kv = kx * ky * kz;
-    crate::flops::add((map.num_pairs() * cin * cout) as u64);
+    if crate::flops::enabled() {
+        // Counting needs the pair count: a deferred map builds its host pairs here.
+        crate::flops::add((map.num_pairs() * cin * cout) as u64);
+    }
     let w = weight.reshape([cout, kv, cin]);
     let mut feats = sparse_conv(input.into_feats(), w, map, false);
     if let Some(b) = bias {

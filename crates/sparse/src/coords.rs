@@ -147,7 +147,9 @@ static NEXT_ID: AtomicU64 = AtomicU64::new(1);
 /// A set produced by a strided convolution remembers its parent set and map, which is how an inverse
 /// convolution restores the parent coordinates.
 pub struct CoordSet {
-    coords: Vec<Coord>,
+    /// Shared with the kernel maps built on this set, which may build their pairs later
+    /// ([`crate::kernel_map::MapSource`]).
+    coords: Arc<Vec<Coord>>,
     /// Built eagerly by the validating constructors, lazily (on the first lookup) for sets made by
     /// kernel-map building, which often never need it.
     index: std::sync::OnceLock<CoordIndex>,
@@ -249,7 +251,7 @@ impl CoordSet {
         tensor_stride: [usize; 3],
     ) -> Self {
         Self {
-            coords,
+            coords: Arc::new(coords),
             index,
             spatial_shape,
             batch_size,
@@ -263,6 +265,10 @@ impl CoordSet {
     /// The coordinates, row `i` belonging to feature row `i`.
     pub fn coords(&self) -> &[Coord] {
         &self.coords
+    }
+    /// The coordinates, shared (no copy).
+    pub(crate) fn shared_coords(&self) -> Arc<Vec<Coord>> {
+        self.coords.clone()
     }
     /// Number of active sites.
     pub fn len(&self) -> usize {

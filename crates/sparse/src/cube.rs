@@ -5,19 +5,20 @@
 //! (lavapipe when there is no GPU: docs/gpu.md).
 
 use crate::backend::{index_tensor, weight_from_matrix, weight_matrix};
-use crate::kernel_map::KernelMap;
+use crate::kernel_map::{KernelMap, MapRule, MapSource, Sites};
 use crate::rows::RowPlan;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Int, Shape, Tensor as BurnTensor, TensorPrimitive};
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::{empty_device_dtype, full_device_dtype};
 use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElement};
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::{Fusion, FusionRuntime, FusionTensor};
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cubecl::prelude::InputScalar;
 use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use kernel::segment_sum_kernel;
 use std::marker::PhantomData;
@@ -362,6 +363,147 @@ mod kernel {
         }
         output[ABSOLUTE_POS] = acc;
     }
+
+    /// The rule and grid of a kernel map built on the device ([`super::build_gather_table`]);
+    /// all runtime values.
+    #[derive(CubeLaunch, CubeType)]
+    pub struct MapDims {
+        /// Kernel extents along y and z, and the kernel volume.
+        pub ky: usize,
+        pub kz: usize,
+        pub kv: usize,
+        /// Stride, padding and dilation per axis.
+        pub sx: usize,
+        pub sy: usize,
+        pub sz: usize,
+        pub px: usize,
+        pub py: usize,
+        pub pz: usize,
+        pub dx: usize,
+        pub dy: usize,
+        pub dz: usize,
+        /// The input sites' grid `(X, Y, Z)` and batch size.
+        pub gx: usize,
+        pub gy: usize,
+        pub gz: usize,
+        pub batch: usize,
+        /// The output sites' grid `(X, Y, Z)`.
+        pub ox: usize,
+        pub oy: usize,
+        pub oz: usize,
+        /// Input sites (the table's "absent" value).
+        pub n_in: usize,
+    }
+
+    /// Row of every input site written into its cell of the dense grid: `grid[cells[r]] = r`
+    /// (`cells`: each site's linear index `((b · X + x) · Y + y) · Z + z`). Sites are unique, so
+    /// no two units write one cell.
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn site_grid_kernel<I: Numeric>(
+        cells: &Tensor<I>,
+        grid: &mut Tensor<I>,
+        dims: &MapDims,
+        #[define(I)] _dtype: StorageType,
+    ) {
+        if ABSOLUTE_POS >= dims.n_in {
+            terminate!();
+        }
+        let cell = usize::cast_from(cells[ABSOLUTE_POS]);
+        grid[cell] = I::cast_from(ABSOLUTE_POS);
+    }
+
+    /// Input coordinate along one axis that output coordinate `o` reaches through kernel index
+    /// `k` (`kernel_map::MapSource::input_of`); `extent` where a backward rule's division is not
+    /// exact. The caller checks `0 <= c < extent`.
+    #[cube]
+    #[allow(clippy::too_many_arguments)]
+    fn axis_input(
+        o: i32,
+        k: i32,
+        s: i32,
+        p: i32,
+        d: i32,
+        extent: i32,
+        #[comptime] forward: bool,
+    ) -> i32 {
+        let mut c = extent;
+        if forward {
+            c = o * s - p + k * d;
+        } else {
+            let t = o + p - k * d;
+            if t >= 0 && t % s == 0 {
+                c = t / s;
+            }
+        }
+        c
+    }
+
+    /// The gather table of a kernel map: entry `(o, k)` is the row of the input site that output
+    /// site `o` reaches through offset `k`, read from the dense grid of [`site_grid_kernel`]
+    /// (`n_in` where that site is absent or off the grid). One unit per entry; no atomics.
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn gather_table_kernel<I: Numeric>(
+        outputs: &Tensor<I>,
+        grid: &Tensor<I>,
+        table: &mut Tensor<I>,
+        dims: &MapDims,
+        #[comptime] forward: bool,
+        #[define(I)] _dtype: StorageType,
+    ) {
+        if ABSOLUTE_POS >= table.len() {
+            terminate!();
+        }
+        let cell = usize::cast_from(outputs[ABSOLUTE_POS / dims.kv]);
+        let k = ABSOLUTE_POS % dims.kv;
+        let kx = i32::cast_from(k / (dims.ky * dims.kz));
+        let ky = i32::cast_from((k / dims.kz) % dims.ky);
+        let kz = i32::cast_from(k % dims.kz);
+        let b = i32::cast_from(cell / (dims.ox * dims.oy * dims.oz));
+        let cx = axis_input(
+            i32::cast_from((cell / (dims.oy * dims.oz)) % dims.ox),
+            kx,
+            i32::cast_from(dims.sx),
+            i32::cast_from(dims.px),
+            i32::cast_from(dims.dx),
+            i32::cast_from(dims.gx),
+            forward,
+        );
+        let cy = axis_input(
+            i32::cast_from((cell / dims.oz) % dims.oy),
+            ky,
+            i32::cast_from(dims.sy),
+            i32::cast_from(dims.py),
+            i32::cast_from(dims.dy),
+            i32::cast_from(dims.gy),
+            forward,
+        );
+        let cz = axis_input(
+            i32::cast_from(cell % dims.oz),
+            kz,
+            i32::cast_from(dims.sz),
+            i32::cast_from(dims.pz),
+            i32::cast_from(dims.dz),
+            i32::cast_from(dims.gz),
+            forward,
+        );
+        let on_grid = b >= 0
+            && b < i32::cast_from(dims.batch)
+            && cx >= 0
+            && cx < i32::cast_from(dims.gx)
+            && cy >= 0
+            && cy < i32::cast_from(dims.gy)
+            && cz >= 0
+            && cz < i32::cast_from(dims.gz);
+        let mut row = I::cast_from(dims.n_in);
+        if on_grid {
+            let lin = ((usize::cast_from(b) * dims.gx + usize::cast_from(cx)) * dims.gy
+                + usize::cast_from(cy))
+                * dims.gz
+                + usize::cast_from(cz);
+            row = grid[lin];
+        }
+        table[ABSOLUTE_POS] = row;
+    }
 }
 
 /// Launches [`segment_sum_kernel`] on raw cubecl tensors.
@@ -579,7 +721,7 @@ const MAX_CUBES_PER_DIM: usize = 65_535;
 const MAX_PARTIAL_ELEMS: usize = 1 << 22;
 
 /// Address type wide enough for every tensor of a launch.
-fn address_type_of<R: CubeRuntime>(tensors: &[&CubeTensor<R>]) -> cubecl::prelude::AddressType {
+pub fn address_type_of<R: CubeRuntime>(tensors: &[&CubeTensor<R>]) -> cubecl::prelude::AddressType {
     tensors
         .iter()
         .map(|t| t.required_address_type())
@@ -749,20 +891,14 @@ impl CubeConv {
     /// The environment variable that chooses the compute: `fetch` (the default) or `gather-gemm`.
     pub const ENV: &'static str = "SPARSEOCC_CUBE_CONV";
 
-    /// The process's choice, read from [`CubeConv::ENV`] once; an unknown value is reported on
-    /// standard error and the default kept.
+    /// The process's choice, read from [`CubeConv::ENV`] once ([`env_choice`]).
     pub fn current() -> Self {
         static CHOICE: std::sync::OnceLock<CubeConv> = std::sync::OnceLock::new();
-        *CHOICE.get_or_init(|| match std::env::var(Self::ENV).as_deref() {
-            Err(_) | Ok("") | Ok("fetch") => CubeConv::Fetch,
-            Ok("gather-gemm") => CubeConv::GatherGemm,
-            Ok(other) => {
-                eprintln!(
-                    "warning: {}={other:?} is not `fetch` or `gather-gemm`; using `fetch`",
-                    Self::ENV
-                );
-                CubeConv::Fetch
-            }
+        *CHOICE.get_or_init(|| {
+            env_choice(
+                Self::ENV,
+                &[Self::Fetch, Self::GatherGemm].map(|c| (c.as_str(), c)),
+            )
         })
     }
 
@@ -775,18 +911,270 @@ impl CubeConv {
     }
 }
 
-/// The map's gather table on `device` as an int tensor, uploaded once per map and device
-/// ([`KernelMap::device_table`]).
-fn device_gather_table<B: Backend>(
+/// The value of environment variable `env` among `choices` (name, value); the first choice when
+/// it is unset or empty. An unknown value is reported on standard error and the first choice kept.
+/// How the cubecl paths' switches (`SPARSEOCC_CUBE_*`) read the environment.
+pub fn env_choice<T: Copy>(env: &str, choices: &[(&'static str, T)]) -> T {
+    let (default_name, default) = choices[0];
+    match std::env::var(env) {
+        Err(_) => default,
+        Ok(v) if v.is_empty() => default,
+        Ok(v) => choices
+            .iter()
+            .find(|(name, _)| *name == v)
+            .map(|&(_, c)| c)
+            .unwrap_or_else(|| {
+                let names: Vec<_> = choices.iter().map(|(n, _)| format!("`{n}`")).collect();
+                eprintln!(
+                    "warning: {env}={v:?} is not one of {}; using `{default_name}`",
+                    names.join(", ")
+                );
+                default
+            }),
+    }
+}
+
+/// Where the cubecl backends build the gather tables of their kernel maps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CubeMaps {
+    /// On the device, from the maps' sites ([`build_gather_table`]): the host computes only
+    /// the output sites of strided and transposed convolutions, and builds no pairs.
+    Device,
+    /// On the host ([`crate::kernel_map::conv_map`]), uploaded once per map.
+    Host,
+}
+
+impl CubeMaps {
+    /// The environment variable that chooses: `device` (the default) or `host`.
+    pub const ENV: &'static str = "SPARSEOCC_CUBE_MAPS";
+
+    /// The process's choice, read from [`CubeMaps::ENV`] once ([`env_choice`]).
+    pub fn current() -> Self {
+        static CHOICE: std::sync::OnceLock<CubeMaps> = std::sync::OnceLock::new();
+        *CHOICE.get_or_init(|| {
+            env_choice(
+                Self::ENV,
+                &[Self::Device, Self::Host].map(|c| (c.as_str(), c)),
+            )
+        })
+    }
+
+    /// Its name, as [`CubeMaps::ENV`] takes it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CubeMaps::Device => "device",
+            CubeMaps::Host => "host",
+        }
+    }
+}
+
+/// Most cells of the dense grid [`build_gather_table`] indexes the input sites with (1 GiB of
+/// `i32`); a map over a larger grid gets its table from the host.
+pub const MAX_DEVICE_GRID: usize = 1 << 28;
+
+/// Cells of a side's grid (`batch · X · Y · Z`).
+fn grid_cells(sites: &Sites) -> Option<usize> {
+    sites
+        .shape
+        .iter()
+        .try_fold(sites.batch, |acc, &d| acc.checked_mul(d))
+}
+
+/// Cells of the dense grid of a map's input sites, if a device can build the map's table: both
+/// sides non-empty, both grids within [`MAX_DEVICE_GRID`] cells (so linear indices fit the int
+/// type).
+fn device_grid_cells(source: &MapSource) -> Option<usize> {
+    let cells = grid_cells(&source.inputs)?;
+    let nonempty = !source.inputs.coords.is_empty() && !source.outputs.coords.is_empty();
+    let fits = cells <= MAX_DEVICE_GRID && grid_cells(&source.outputs)? <= MAX_DEVICE_GRID;
+    (nonempty && fits).then_some(cells)
+}
+
+/// Builds a kernel map's gather table on the device from its sites: the input sites' rows are
+/// written into a dense grid of their cells (spconv 1.x's dense index; a bounded voxel grid needs
+/// no hash), then every (output row, offset) reads the cell its rule reaches. Integer work, no
+/// atomics: the table equals [`KernelMap::gather_table`] entry for entry.
+///
+/// # Shapes
+/// - inputs: `[n_in]`, outputs: `[n_out]` (each site's linear index in its grid, the int dtype)
+///   -> `[n_out · K]`
+pub fn build_gather_table<R: CubeRuntime>(
+    inputs: CubeTensor<R>,
+    outputs: CubeTensor<R>,
+    source: &MapSource,
+) -> CubeTensor<R> {
+    let inputs = into_contiguous(inputs);
+    let outputs = into_contiguous(outputs);
+    let g = &source.geometry;
+    let (n_in, n_out, kv) = (
+        source.inputs.coords.len(),
+        source.outputs.coords.len(),
+        g.volume(),
+    );
+    let cells = device_grid_cells(source).expect("the caller checked the grid");
+    let client = inputs.client.clone();
+    let dtype = inputs.dtype;
+    let grid = full_device_dtype(
+        client.clone(),
+        Shape::new([cells]),
+        inputs.device.clone(),
+        InputScalar::new(n_in, dtype),
+        dtype,
+    );
+    let table = empty_device_dtype(
+        client.clone(),
+        inputs.device.clone(),
+        Shape::new([n_out * kv]),
+        dtype,
+    );
+    let [gx, gy, gz] = source.inputs.shape;
+    let [ox, oy, oz] = source.outputs.shape;
+    let dims = || {
+        kernel::MapDimsLaunch::new(
+            g.kernel[1],
+            g.kernel[2],
+            kv,
+            g.stride[0],
+            g.stride[1],
+            g.stride[2],
+            g.padding[0],
+            g.padding[1],
+            g.padding[2],
+            g.dilation[0],
+            g.dilation[1],
+            g.dilation[2],
+            gx,
+            gy,
+            gz,
+            source.inputs.batch,
+            ox,
+            oy,
+            oz,
+            n_in,
+        )
+    };
+    let address_type = address_type_of(&[&inputs, &outputs, &grid, &table]);
+    let dim = CubeDim::new(&client, n_in);
+    let count = calculate_cube_count_elemwise(&client, n_in, dim);
+    // SAFETY: the sites are valid for their grid (a `CoordSet` checks them), so every cell index
+    // is below `cells`; the unit count bounds the rows read.
+    unsafe {
+        kernel::site_grid_kernel::launch_unchecked(
+            &client,
+            count,
+            dim,
+            address_type,
+            inputs.into_tensor_arg(),
+            grid.clone().into_tensor_arg(),
+            dims(),
+            dtype.into(),
+        )
+    };
+    let units = n_out * kv;
+    let dim = CubeDim::new(&client, units);
+    let count = calculate_cube_count_elemwise(&client, units, dim);
+    // SAFETY: a cell is read only when every coordinate lies on the grid; the table position is
+    // bounds-checked.
+    unsafe {
+        kernel::gather_table_kernel::launch_unchecked(
+            &client,
+            count,
+            dim,
+            address_type,
+            outputs.into_tensor_arg(),
+            grid.into_tensor_arg(),
+            table.clone().into_tensor_arg(),
+            dims(),
+            source.rule == MapRule::Forward,
+            dtype.into(),
+        )
+    };
+    table
+}
+
+/// The sites of one side of a map as an int tensor of their linear indices `[n]` (4 bytes a
+/// site to upload).
+fn sites_tensor<B: Backend>(sites: &Sites, device: &B::Device) -> BurnTensor<B, 1, Int> {
+    let [sx, sy, sz] = sites.shape;
+    // Valid sites lie on their grid, whose cells fit in `u32` (`device_grid_cells`).
+    let cells: Vec<u32> = sites
+        .coords
+        .iter()
+        .map(|c| {
+            (((c[0] as usize * sx + c[1] as usize) * sy + c[2] as usize) * sz + c[3] as usize)
+                as u32
+        })
+        .collect();
+    index_tensor::<B>(&cells, device)
+}
+
+/// The map's gather table on `device` as an int tensor, once per map and device
+/// ([`KernelMap::device_table`]): built there ([`build_gather_table`]) for a deferred map whose
+/// host pairs do not exist, else the host table uploaded. `None` when the map has no gather table.
+fn device_gather_table<R, F, I, BT>(
     map: &KernelMap,
-    table: &[u32],
-    device: &B::Device,
-) -> BurnTensor<B, 1, Int> {
-    map.device_table::<(B::Device, BurnTensor<B, 1, Int>)>(
+    device: &burn::tensor::Device<Fusion<CubeBackend<R, F, I, BT>>>,
+) -> Option<FusionTensor<FusionCubeRuntime<R>>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
+    let on_device = map
+        .source()
+        .filter(|s| !map.has_host_pairs() && device_grid_cells(s).is_some());
+    if on_device.is_none() && map.gather_table().is_none() {
+        return None;
+    }
+    let (_, table) = map.device_table::<(_, BurnTensor<Fused<R, F, I, BT>, 1, Int>)>(
         |(d, _)| d == device,
-        || (device.clone(), index_tensor::<B>(table, device)),
-    )
-    .1
+        || {
+            let table = match on_device {
+                Some(source) => {
+                    let inputs = sites_tensor::<Fused<R, F, I, BT>>(&source.inputs, device);
+                    let outputs = sites_tensor::<Fused<R, F, I, BT>>(&source.outputs, device);
+                    let shape = Shape::new([map.n_out() * map.kernel_volume()]);
+                    let source = source.clone();
+                    let t = register_one::<R, F, I, BT>(
+                        "occ_sparse::build_gather_table",
+                        vec![inputs.into_primitive(), outputs.into_primitive()],
+                        shape,
+                        move |t| {
+                            let [inputs, outputs] = inputs_of(t);
+                            build_gather_table(inputs, outputs, &source)
+                        },
+                    );
+                    BurnTensor::from_primitive(t)
+                }
+                None => index_tensor::<Fused<R, F, I, BT>>(
+                    map.gather_table().expect("checked above"),
+                    device,
+                ),
+            };
+            (device.clone(), table)
+        },
+    );
+    Some(table.into_primitive())
+}
+
+/// [`device_gather_table`] read back to the host (what `check-backend` compares with
+/// [`KernelMap::gather_table`]).
+pub fn read_device_gather_table<R, F, I, BT>(
+    map: &KernelMap,
+    device: &burn::tensor::Device<Fusion<CubeBackend<R, F, I, BT>>>,
+) -> Option<Vec<u32>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    let t = device_gather_table::<R, F, I, BT>(map, device)?;
+    let t = BurnTensor::<Fusion<CubeBackend<R, F, I, BT>>, 1, Int>::from_primitive(t);
+    let v = t.into_data().convert::<i64>().to_vec::<i64>().ok()?;
+    Some(v.into_iter().map(|x| x as u32).collect())
 }
 
 /// Sparse convolution on a fused cubecl backend with [`sparse_conv_fetch`]; `Err` with the
@@ -814,16 +1202,15 @@ where
     BT: BoolElement,
 {
     type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
-    let Some(table) = map.gather_table() else {
-        return Err((x, w));
-    };
     if CubeConv::current() != CubeConv::Fetch {
         return Err((x, w));
     }
     let w = BurnTensor::<Fused<R, F, I, BT>, 3>::from_primitive(TensorPrimitive::Float(w));
     let device = w.device();
+    let Some(table) = device_gather_table::<R, F, I, BT>(map, &device) else {
+        return Err((x, w.into_primitive().tensor()));
+    };
     let wm = weight_matrix(w, transposed).into_primitive().tensor();
-    let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
     let shape = Shape::new([map.n_out(), wm.shape[1]]);
     let kv = map.kernel_volume();
     Ok(register_one::<R, F, I, BT>(
@@ -863,16 +1250,15 @@ where
     BT: BoolElement,
 {
     type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
-    let Some(table) = map.gather_table() else {
-        return Err((x, dy));
-    };
     if CubeConv::current() != CubeConv::Fetch {
         return Err((x, dy));
     }
     let x = BurnTensor::<Fused<R, F, I, BT>, 2>::from_primitive(TensorPrimitive::Float(x));
     let device = x.device();
     let x = x.into_primitive().tensor();
-    let table = device_gather_table::<Fused<R, F, I, BT>>(map, table, &device).into_primitive();
+    let Some(table) = device_gather_table::<R, F, I, BT>(map, &device) else {
+        return Err((x, dy));
+    };
     let kv = map.kernel_volume();
     let (cin, cout) = (x.shape[1], dy.shape[1]);
     let dw = register_one::<R, F, I, BT>(

@@ -1,8 +1,11 @@
 //! Kernel maps (rulebooks): for every kernel offset, the (input row, output row) pairs it connects.
 //!
-//! Building a map is integer work on the host and is kept apart from the feature compute
-//! ([`crate::backend`]), as in spconv and torchsparse. Maps are cached inside the input [`CoordSet`] under a
-//! typed [`KernelMapKey`].
+//! Building a map is integer work kept apart from the feature compute ([`crate::backend`]), as in
+//! spconv and torchsparse. [`conv_map`] builds the pairs on the host; [`conv_map_deferred`] builds
+//! only the output sites there and leaves the pairs to whoever needs them: a device builds its
+//! gather table from the map's [`MapSource`] (`crate::cube`), the host builds the pairs on first
+//! use (the same pairs). Maps are cached inside the input [`CoordSet`] under a typed
+//! [`KernelMapKey`].
 //!
 //! Offsets are numbered `k = (kx * KY + ky) * KZ + kz`, matching weights `[Cout, kx, ky, kz, Cin]` seen as
 //! `[Cout, K, Cin]`. The arithmetic is cross-correlation, as in spconv and torch (docs/reference_models.md §3):
@@ -148,19 +151,148 @@ pub struct KernelMapKey {
 }
 
 /// The pairs of one convolution, grouped by kernel offset, sorted by output row inside each group.
+///
+/// A map built for a device ([`conv_map_deferred`]) holds its [`MapSource`] (the two site lists
+/// and the rule between them) and builds its host pairs only when something on the host asks for
+/// them; a device builds its table from the same source ([`crate::cube`]).
 #[derive(Debug)]
 pub struct KernelMap {
     kernel_volume: usize,
     n_in: usize,
     n_out: usize,
-    in_idx: Vec<u32>,
-    out_idx: Vec<u32>,
-    offset_start: Vec<usize>,
-    build_ms: f64,
+    pairs: OnceLock<Pairs>,
+    source: Option<MapSource>,
     transposed: OnceLock<Arc<KernelMap>>,
     gather_table: OnceLock<Option<Vec<u32>>>,
     by_output: OnceLock<OutputPairs>,
     device_tables: DeviceTables,
+}
+
+/// The pair lists of a map, grouped by offset.
+#[derive(Debug)]
+struct Pairs {
+    in_idx: Vec<u32>,
+    out_idx: Vec<u32>,
+    offset_start: Vec<usize>,
+    build_ms: f64,
+}
+
+/// How an output site reaches its input site through kernel offset `k`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MapRule {
+    /// `input = output · stride - padding + k · dilation`: regular and strided convolutions,
+    /// and submanifold ones (stride 1, padding `(kernel / 2) · dilation`).
+    Forward,
+    /// `input = (output + padding - k · dilation) / stride` where the division is exact:
+    /// transposed convolutions, and the transpose of a [`MapRule::Forward`] map.
+    Backward,
+}
+
+/// One side of a map: its sites (row `i` = coordinate `i`) and the grid they lie in.
+#[derive(Clone, Debug)]
+pub struct Sites {
+    /// `(b, x, y, z)` of every row.
+    pub coords: Arc<Vec<Coord>>,
+    /// Grid shape `(X, Y, Z)`.
+    pub shape: [usize; 3],
+    /// Batch size.
+    pub batch: usize,
+}
+
+impl Sites {
+    fn of(set: &CoordSet) -> Self {
+        Self {
+            coords: set.shared_coords(),
+            shape: set.spatial_shape(),
+            batch: set.batch_size(),
+        }
+    }
+}
+
+/// What a map connects: output row `o` and offset `k` reach the input site
+/// `rule(outputs[o], k)` when it is one of `inputs`. Everything a builder needs, on the host
+/// ([`KernelMap::pairs`]) or on a device.
+#[derive(Clone, Debug)]
+pub struct MapSource {
+    /// The rule.
+    pub rule: MapRule,
+    /// Kernel, stride, padding and dilation of the rule.
+    pub geometry: ConvGeometry,
+    /// The map's input rows.
+    pub inputs: Sites,
+    /// The map's output rows.
+    pub outputs: Sites,
+}
+
+impl MapSource {
+    /// The input coordinate that output coordinate `o` reaches through offset `k`, before the
+    /// bounds check (`None` where a [`MapRule::Backward`] division is not exact or negative).
+    #[inline]
+    pub fn input_of(&self, o: Coord, k: [usize; 3]) -> Option<Coord> {
+        let g = &self.geometry;
+        let mut c = [o[0], 0, 0, 0];
+        for a in 0..3 {
+            let (s, p, d) = (
+                g.stride[a] as i32,
+                g.padding[a] as i32,
+                g.dilation[a] as i32,
+            );
+            c[a + 1] = match self.rule {
+                MapRule::Forward => o[a + 1] * s - p + k[a] as i32 * d,
+                MapRule::Backward => {
+                    let t = o[a + 1] + p - k[a] as i32 * d;
+                    if t < 0 || t % s != 0 {
+                        return None;
+                    }
+                    t / s
+                }
+            };
+        }
+        Some(c)
+    }
+
+    /// The source of the transposed map: sides swapped, the inverse rule.
+    pub fn transposed(&self) -> MapSource {
+        MapSource {
+            rule: match self.rule {
+                MapRule::Forward => MapRule::Backward,
+                MapRule::Backward => MapRule::Forward,
+            },
+            geometry: self.geometry,
+            inputs: self.outputs.clone(),
+            outputs: self.inputs.clone(),
+        }
+    }
+
+    /// The host pairs (a dense row table of the inputs where it pays off, else a hash index).
+    fn build(&self) -> Pairs {
+        let inputs = &self.inputs;
+        let lookups = self.outputs.coords.len() * self.geometry.volume();
+        let input_of = |o, k| self.input_of(o, k);
+        match DenseRows::of_coords(&inputs.coords, inputs.batch, inputs.shape, lookups) {
+            Some(t) => {
+                build_pairs_with(&self.outputs.coords, &self.geometry, input_of, |c| t.get(c))
+            }
+            None => {
+                let mut index = crate::coords::CoordIndex::with_capacity(inputs.coords.len());
+                for (row, &c) in inputs.coords.iter().enumerate() {
+                    index.insert(pack(c), row as u32);
+                }
+                let inside = |c: Coord| {
+                    c[0] >= 0
+                        && (c[0] as usize) < inputs.batch
+                        && (0..3).all(|a| c[a + 1] >= 0 && (c[a + 1] as usize) < inputs.shape[a])
+                };
+                build_pairs_with(&self.outputs.coords, &self.geometry, input_of, |c| {
+                    if inside(c) {
+                        index.get(pack(c))
+                    } else {
+                        None
+                    }
+                })
+            }
+        }
+    }
 }
 
 /// Copies of a map's tables on compute devices (see [`KernelMap::device_table`]), type-erased so
@@ -211,19 +343,68 @@ impl KernelMap {
             out_idx.extend_from_slice(&outs);
             offset_start.push(in_idx.len());
         }
-        Ok(Self {
-            kernel_volume: offset_start.len() - 1,
+        Ok(Self::eager(
+            offset_start.len() - 1,
             n_in,
             n_out,
-            in_idx,
-            out_idx,
-            offset_start,
-            build_ms: 0.0,
+            Pairs {
+                in_idx,
+                out_idx,
+                offset_start,
+                build_ms: 0.0,
+            },
+        ))
+    }
+
+    /// A map with its host pairs.
+    fn eager(kernel_volume: usize, n_in: usize, n_out: usize, pairs: Pairs) -> Self {
+        Self {
+            kernel_volume,
+            n_in,
+            n_out,
+            pairs: OnceLock::from(pairs),
+            source: None,
             transposed: OnceLock::new(),
             gather_table: OnceLock::new(),
             by_output: OnceLock::new(),
             device_tables: DeviceTables::default(),
+        }
+    }
+
+    /// A map that builds its host pairs from `source` on first use.
+    fn deferred(source: MapSource) -> Self {
+        Self {
+            kernel_volume: source.geometry.volume(),
+            n_in: source.inputs.coords.len(),
+            n_out: source.outputs.coords.len(),
+            pairs: OnceLock::new(),
+            source: Some(source),
+            transposed: OnceLock::new(),
+            gather_table: OnceLock::new(),
+            by_output: OnceLock::new(),
+            device_tables: DeviceTables::default(),
+        }
+    }
+
+    /// The host pairs, built now if the map was deferred.
+    fn host(&self) -> &Pairs {
+        self.pairs.get_or_init(|| {
+            self.source
+                .as_ref()
+                .expect("a map without pairs has a source")
+                .build()
         })
+    }
+
+    /// The sites and rule of a deferred map ([`conv_map_deferred`]), from which a device builds
+    /// its table without the host pairs; `None` for a map built with its pairs.
+    pub fn source(&self) -> Option<&MapSource> {
+        self.source.as_ref()
+    }
+
+    /// Whether the host pairs exist yet (always for maps not deferred).
+    pub fn has_host_pairs(&self) -> bool {
+        self.pairs.get().is_some()
     }
 
     /// Number of kernel offsets K.
@@ -238,24 +419,26 @@ impl KernelMap {
     pub fn n_out(&self) -> usize {
         self.n_out
     }
-    /// Total number of pairs.
+    /// Total number of pairs (builds the host pairs of a deferred map).
     pub fn num_pairs(&self) -> usize {
-        self.in_idx.len()
+        self.host().in_idx.len()
     }
-    /// Milliseconds spent building this map (the pairs; for a regular convolution on a well-filled grid
-    /// also the output sites, which the dense path finds in the same passes).
+    /// Milliseconds spent building this map's host pairs (for a regular convolution on a
+    /// well-filled grid also the output sites, which the dense path finds in the same passes);
+    /// 0 for a deferred map whose pairs were never asked for.
     pub fn build_ms(&self) -> f64 {
-        self.build_ms
+        self.pairs.get().map_or(0.0, |p| p.build_ms)
     }
-    /// The (input rows, output rows) of offset `k`.
+    /// The (input rows, output rows) of offset `k` (builds the host pairs of a deferred map).
     pub fn pairs(&self, k: usize) -> (&[u32], &[u32]) {
-        let (a, b) = (self.offset_start[k], self.offset_start[k + 1]);
-        (&self.in_idx[a..b], &self.out_idx[a..b])
+        let p = self.host();
+        let (a, b) = (p.offset_start[k], p.offset_start[k + 1]);
+        (&p.in_idx[a..b], &p.out_idx[a..b])
     }
     /// Number of neighbours (pairs) of every output row.
     pub fn neighbour_counts(&self) -> Vec<u32> {
         let mut c = vec![0u32; self.n_out];
-        for &o in &self.out_idx {
+        for &o in &self.host().out_idx {
             c[o as usize] += 1;
         }
         c
@@ -316,15 +499,16 @@ impl KernelMap {
     pub fn by_output(&self) -> &OutputPairs {
         self.by_output.get_or_init(|| {
             let mut start = vec![0u32; self.n_out + 1];
-            for &o in &self.out_idx {
+            for &o in &self.host().out_idx {
                 start[o as usize + 1] += 1;
             }
             for o in 0..self.n_out {
                 start[o + 1] += start[o];
             }
             let mut next = start.clone();
-            let mut ins = vec![0u32; self.in_idx.len()];
-            let mut offsets = vec![0u32; self.in_idx.len()];
+            let total = self.num_pairs();
+            let mut ins = vec![0u32; total];
+            let mut offsets = vec![0u32; total];
             for k in 0..self.kernel_volume {
                 let (ki, ko) = self.pairs(k);
                 for (&i, &o) in ki.iter().zip(ko) {
@@ -348,29 +532,32 @@ impl KernelMap {
     /// `0..n_in`.
     pub(crate) fn with_input_rows(&self, rows: &[u32]) -> KernelMap {
         debug_assert_eq!(rows.len(), self.n_in);
-        KernelMap {
-            kernel_volume: self.kernel_volume,
-            n_in: self.n_in,
-            n_out: self.n_out,
-            in_idx: self.in_idx.iter().map(|&i| rows[i as usize]).collect(),
-            out_idx: self.out_idx.clone(),
-            offset_start: self.offset_start.clone(),
-            build_ms: self.build_ms,
-            transposed: OnceLock::new(),
-            gather_table: OnceLock::new(),
-            by_output: OnceLock::new(),
-            device_tables: DeviceTables::default(),
-        }
+        let p = self.host();
+        KernelMap::eager(
+            self.kernel_volume,
+            self.n_in,
+            self.n_out,
+            Pairs {
+                in_idx: p.in_idx.iter().map(|&i| rows[i as usize]).collect(),
+                out_idx: p.out_idx.clone(),
+                offset_start: p.offset_start.clone(),
+                build_ms: p.build_ms,
+            },
+        )
     }
 
     /// The map with inputs and outputs swapped (same offset numbering), sorted by its new output rows.
-    /// Used by gradients and by inverse convolution. Computed once and cached.
+    /// Used by gradients and by inverse convolution. Computed once and cached; the transpose of a
+    /// deferred map is deferred too (its source transposed), so no host pairs are built for it.
     pub fn transposed(&self) -> Arc<KernelMap> {
         self.transposed
             .get_or_init(|| {
+                if let (Some(source), None) = (&self.source, self.pairs.get()) {
+                    return Arc::new(KernelMap::deferred(source.transposed()));
+                }
                 let t0 = Instant::now();
-                let mut in_idx = Vec::with_capacity(self.in_idx.len());
-                let mut out_idx = Vec::with_capacity(self.in_idx.len());
+                let mut in_idx = Vec::with_capacity(self.num_pairs());
+                let mut out_idx = Vec::with_capacity(self.num_pairs());
                 let mut offset_start = vec![0];
                 for k in 0..self.kernel_volume {
                     let (ins, outs) = self.pairs(k);
@@ -382,19 +569,17 @@ impl KernelMap {
                     }
                     offset_start.push(in_idx.len());
                 }
-                Arc::new(KernelMap {
-                    kernel_volume: self.kernel_volume,
-                    n_in: self.n_out,
-                    n_out: self.n_in,
-                    in_idx,
-                    out_idx,
-                    offset_start,
-                    build_ms: t0.elapsed().as_secs_f64() * 1e3,
-                    transposed: OnceLock::new(),
-                    gather_table: OnceLock::new(),
-                    by_output: OnceLock::new(),
-                    device_tables: DeviceTables::default(),
-                })
+                Arc::new(KernelMap::eager(
+                    self.kernel_volume,
+                    self.n_out,
+                    self.n_in,
+                    Pairs {
+                        in_idx,
+                        out_idx,
+                        offset_start,
+                        build_ms: t0.elapsed().as_secs_f64() * 1e3,
+                    },
+                ))
             })
             .clone()
     }
@@ -460,8 +645,18 @@ impl DenseRows {
 
     /// The table of an existing set, if it pays off for `lookups` lookups.
     fn of_set(set: &CoordSet, lookups: usize) -> Option<Self> {
-        let mut t = Self::empty(set.batch_size(), set.spatial_shape(), set.len(), lookups)?;
-        for (row, &c) in set.coords().iter().enumerate() {
+        Self::of_coords(set.coords(), set.batch_size(), set.spatial_shape(), lookups)
+    }
+
+    /// The table of valid, unique sites of a `[batch, shape]` grid.
+    fn of_coords(
+        coords: &[Coord],
+        batch: usize,
+        shape: [usize; 3],
+        lookups: usize,
+    ) -> Option<Self> {
+        let mut t = Self::empty(batch, shape, coords.len(), lookups)?;
+        for (row, &c) in coords.iter().enumerate() {
             let i = t.lin_unchecked(c);
             t.rows[i] = row as u32;
         }
@@ -510,18 +705,13 @@ fn regular_output_of(
     Some(o)
 }
 
-/// Regular convolution on a well-filled grid, without hashing: mark the outputs reached from every
-/// input and offset in a dense table of the output grid, number them in (b, x, y, z) order by one scan
-/// of the table, then emit the pairs input-major over the inputs in (b, x, y, z) order. For a fixed
-/// offset the input → output correspondence is a translation followed by an exact division, which
-/// preserves that order, so each offset's pairs come out sorted by output row without a sort.
-/// `None` when the output grid is too large for a table (the hash path is used then).
-fn build_regular_dense(
+/// The output sites of a regular convolution on a well-filled grid (see [`build_regular_dense`],
+/// steps 1 and 2), with the dense table of their rows; `None` when the table does not pay off.
+fn regular_outputs_dense(
     input: &CoordSet,
     geom: &ConvGeometry,
     out_shape: [usize; 3],
-) -> Option<(Vec<Coord>, KernelMap)> {
-    let t0 = Instant::now();
+) -> Option<(Vec<Coord>, DenseRows)> {
     let kv = geom.volume();
     let mut table = DenseRows::empty(input.batch_size(), out_shape, input.len(), input.len() * kv)?;
     let mut scratch = Vec::new();
@@ -551,6 +741,23 @@ fn build_regular_dense(
             }
         }
     }
+    Some((outputs, table))
+}
+
+/// Regular convolution on a well-filled grid, without hashing: mark the outputs reached from every
+/// input and offset in a dense table of the output grid, number them in (b, x, y, z) order by one scan
+/// of the table, then emit the pairs input-major over the inputs in (b, x, y, z) order. For a fixed
+/// offset the input → output correspondence is a translation followed by an exact division, which
+/// preserves that order, so each offset's pairs come out sorted by output row without a sort.
+/// `None` when the output grid is too large for a table (the hash path is used then).
+fn build_regular_dense(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    out_shape: [usize; 3],
+) -> Option<(Vec<Coord>, KernelMap)> {
+    let t0 = Instant::now();
+    let kv = geom.volume();
+    let (outputs, table) = regular_outputs_dense(input, geom, out_shape)?;
     // 3. Pairs, input-major in sorted input order.
     let coords = input.coords();
     let sorted = coords.windows(2).all(|w| pack(w[0]) < pack(w[1]));
@@ -587,7 +794,7 @@ fn build_regular_dense(
             per
         })
         .collect();
-    let map = assemble(kv, input.len(), outputs.len(), &chunks, t0);
+    let map = KernelMap::eager(kv, input.len(), outputs.len(), assemble(kv, &chunks, t0));
     Some((outputs, map))
 }
 
@@ -652,22 +859,15 @@ fn build_pairs<F>(
 where
     F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
 {
-    match DenseRows::of_set(input, outputs.len() * geom.volume()) {
-        Some(table) => build_pairs_with(input.len(), outputs, geom, input_of, |c| table.get(c)),
-        None => build_pairs_with(input.len(), outputs, geom, input_of, |c| {
-            input.find(c).map(|r| r as u32)
-        }),
-    }
+    let pairs = match DenseRows::of_set(input, outputs.len() * geom.volume()) {
+        Some(table) => build_pairs_with(outputs, geom, input_of, |c| table.get(c)),
+        None => build_pairs_with(outputs, geom, input_of, |c| input.find(c).map(|r| r as u32)),
+    };
+    KernelMap::eager(geom.volume(), input.len(), outputs.len(), pairs)
 }
 
 /// [`build_pairs`] with an explicit input lookup.
-fn build_pairs_with<F, L>(
-    n_in: usize,
-    outputs: &[Coord],
-    geom: &ConvGeometry,
-    input_of: F,
-    find: L,
-) -> KernelMap
+fn build_pairs_with<F, L>(outputs: &[Coord], geom: &ConvGeometry, input_of: F, find: L) -> Pairs
 where
     F: Fn(Coord, [usize; 3]) -> Option<Coord> + Sync,
     L: Fn(Coord) -> Option<u32> + Sync,
@@ -701,17 +901,11 @@ where
             per
         })
         .collect();
-    assemble(kv, n_in, outputs.len(), &chunks, t0)
+    assemble(kv, &chunks, t0)
 }
 
 /// Concatenates per-chunk, per-offset pair lists (chunks in output order) into one map.
-fn assemble(
-    kv: usize,
-    n_in: usize,
-    n_out: usize,
-    chunks: &[Vec<(Vec<u32>, Vec<u32>)>],
-    t0: Instant,
-) -> KernelMap {
+fn assemble(kv: usize, chunks: &[Vec<(Vec<u32>, Vec<u32>)>], t0: Instant) -> Pairs {
     let total: usize = chunks
         .iter()
         .flat_map(|c| c.iter().map(|p| p.0.len()))
@@ -727,19 +921,25 @@ fn assemble(
         }
         offset_start.push(in_idx.len());
     }
-    KernelMap {
-        kernel_volume: kv,
-        n_in,
-        n_out,
+    Pairs {
         in_idx,
         out_idx,
         offset_start,
         build_ms: t0.elapsed().as_secs_f64() * 1e3,
-        transposed: OnceLock::new(),
-        gather_table: OnceLock::new(),
-        by_output: OnceLock::new(),
-        device_tables: DeviceTables::default(),
     }
+}
+
+/// The geometry of a submanifold convolution as a [`MapRule::Forward`] rule: stride 1, padding
+/// `(kernel / 2) · dilation`. Errors if a kernel extent is even.
+fn submanifold_geometry(kernel: [usize; 3], dilation: [usize; 3]) -> Result<ConvGeometry> {
+    let geom = ConvGeometry::new(kernel).with_dilation(dilation);
+    geom.validate()?;
+    if kernel.iter().any(|k| k % 2 == 0) {
+        return Err(SparseError::Config(format!(
+            "submanifold convolution needs an odd kernel, got {kernel:?}"
+        )));
+    }
+    Ok(geom.with_padding(std::array::from_fn(|a| (kernel[a] / 2) * dilation[a])))
 }
 
 /// Submanifold map: outputs are the inputs, the kernel centred. Errors if a kernel extent is even.
@@ -748,13 +948,7 @@ pub fn build_submanifold(
     kernel: [usize; 3],
     dilation: [usize; 3],
 ) -> Result<KernelMap> {
-    let geom = ConvGeometry::new(kernel).with_dilation(dilation);
-    geom.validate()?;
-    if kernel.iter().any(|k| k % 2 == 0) {
-        return Err(SparseError::Config(format!(
-            "submanifold convolution needs an odd kernel, got {kernel:?}"
-        )));
-    }
+    let geom = submanifold_geometry(kernel, dilation)?;
     let half: [i32; 3] = std::array::from_fn(|a| ((kernel[a] / 2) * dilation[a]) as i32);
     let d: [i32; 3] = std::array::from_fn(|a| dilation[a] as i32);
     Ok(build_pairs(input, input.coords(), &geom, |o, k| {
@@ -780,13 +974,13 @@ pub fn build_regular(
     Ok((outputs, out_shape, map))
 }
 
-/// Regular convolution on a sparse grid: candidate outputs of every input and offset, sorted and
-/// deduplicated, then the pairs by probing the input's hash index from every output.
-fn build_regular_hashed(
+/// The output sites of a regular convolution on a sparse grid: the candidates of every input and
+/// offset, sorted and deduplicated.
+fn regular_outputs_hashed(
     input: &CoordSet,
     geom: &ConvGeometry,
     out_shape: [usize; 3],
-) -> (Vec<Coord>, KernelMap) {
+) -> Vec<Coord> {
     let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
     let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
     let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
@@ -808,7 +1002,20 @@ fn build_regular_hashed(
             v
         })
         .collect();
-    let outputs = unique_sorted(keys);
+    unique_sorted(keys)
+}
+
+/// Regular convolution on a sparse grid: candidate outputs of every input and offset, sorted and
+/// deduplicated, then the pairs by probing the input's hash index from every output.
+fn build_regular_hashed(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    out_shape: [usize; 3],
+) -> (Vec<Coord>, KernelMap) {
+    let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
+    let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
+    let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
+    let outputs = regular_outputs_hashed(input, geom, out_shape);
     let input_of = |o: Coord, k: [usize; 3]| {
         Some([
             o[0],
@@ -817,19 +1024,16 @@ fn build_regular_hashed(
             o[3] * s[2] - p[2] + k[2] as i32 * d[2],
         ])
     };
-    let map = build_pairs_with(input.len(), &outputs, geom, input_of, |c| {
+    let pairs = build_pairs_with(&outputs, geom, input_of, |c| {
         input.find(c).map(|r| r as u32)
     });
+    let map = KernelMap::eager(geom.volume(), input.len(), outputs.len(), pairs);
     (outputs, map)
 }
 
-/// Output sites and map of a transposed convolution.
-pub fn build_transposed(
-    input: &CoordSet,
-    geom: &ConvGeometry,
-    output_padding: [usize; 3],
-) -> Result<(Vec<Coord>, [usize; 3], KernelMap)> {
-    let out_shape = geom.transposed_output_shape(input.spatial_shape(), output_padding)?;
+/// The output sites of a transposed convolution: every `i · s - p + k · d` inside the output grid,
+/// sorted and deduplicated.
+fn transposed_outputs(input: &CoordSet, geom: &ConvGeometry, out_shape: [usize; 3]) -> Vec<Coord> {
     let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
     let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
     let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
@@ -856,7 +1060,20 @@ pub fn build_transposed(
             v
         })
         .collect();
-    let outputs = unique_sorted(keys);
+    unique_sorted(keys)
+}
+
+/// Output sites and map of a transposed convolution.
+pub fn build_transposed(
+    input: &CoordSet,
+    geom: &ConvGeometry,
+    output_padding: [usize; 3],
+) -> Result<(Vec<Coord>, [usize; 3], KernelMap)> {
+    let out_shape = geom.transposed_output_shape(input.spatial_shape(), output_padding)?;
+    let outputs = transposed_outputs(input, geom, out_shape);
+    let s: [i32; 3] = std::array::from_fn(|a| geom.stride[a] as i32);
+    let p: [i32; 3] = std::array::from_fn(|a| geom.padding[a] as i32);
+    let d: [i32; 3] = std::array::from_fn(|a| geom.dilation[a] as i32);
     let map = build_pairs(input, &outputs, geom, |o, k| {
         let mut i = [o[0], 0, 0, 0];
         for a in 0..3 {
@@ -880,6 +1097,68 @@ pub fn conv_map(
     kind: MapKind,
     geometry: ConvGeometry,
 ) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
+    conv_map_with(input, kind, geometry, false)
+}
+
+/// [`conv_map`] for a backend that builds its tables on its own device: the output set is
+/// computed on the host (a strided or transposed convolution's sites), the pairs are not; the
+/// map holds its [`MapSource`] and builds host pairs only if something on the host asks for them
+/// (the same pairs [`conv_map`] builds). A map already cached for this convolution is returned as
+/// it is, deferred or not.
+pub fn conv_map_deferred(
+    input: &Arc<CoordSet>,
+    kind: MapKind,
+    geometry: ConvGeometry,
+) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
+    conv_map_with(input, kind, geometry, true)
+}
+
+/// The output set and deferred map of a convolution (see [`conv_map_deferred`]).
+fn deferred_map(
+    input: &Arc<CoordSet>,
+    kind: MapKind,
+    geometry: ConvGeometry,
+) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
+    let ts = input.tensor_stride();
+    let (rule, geometry, output) = match kind {
+        MapKind::Submanifold => (
+            MapRule::Forward,
+            submanifold_geometry(geometry.kernel, geometry.dilation)?,
+            input.clone(),
+        ),
+        MapKind::Regular => {
+            let shape = geometry.regular_output_shape(input.spatial_shape())?;
+            let coords = match regular_outputs_dense(input, &geometry, shape) {
+                Some((coords, _)) => coords,
+                None => regular_outputs_hashed(input, &geometry, shape),
+            };
+            let stride = std::array::from_fn(|a| ts[a] * geometry.stride[a]);
+            let out = CoordSet::from_valid_unique(coords, shape, input.batch_size(), stride);
+            (MapRule::Forward, geometry, Arc::new(out))
+        }
+        MapKind::Transposed { output_padding } => {
+            let shape = geometry.transposed_output_shape(input.spatial_shape(), output_padding)?;
+            let coords = transposed_outputs(input, &geometry, shape);
+            let stride = std::array::from_fn(|a| (ts[a] / geometry.stride[a]).max(1));
+            let out = CoordSet::from_valid_unique(coords, shape, input.batch_size(), stride);
+            (MapRule::Backward, geometry, Arc::new(out))
+        }
+    };
+    let map = KernelMap::deferred(MapSource {
+        rule,
+        geometry,
+        inputs: Sites::of(input),
+        outputs: Sites::of(&output),
+    });
+    Ok((output, Arc::new(map)))
+}
+
+fn conv_map_with(
+    input: &Arc<CoordSet>,
+    kind: MapKind,
+    geometry: ConvGeometry,
+    deferred: bool,
+) -> Result<(Arc<CoordSet>, Arc<KernelMap>)> {
     let key = KernelMapKey {
         kind,
         geometry,
@@ -900,6 +1179,7 @@ pub fn conv_map(
     }
     let ts = input.tensor_stride();
     let (output, map) = match kind {
+        _ if deferred => deferred_map(input, kind, geometry)?,
         MapKind::Submanifold => {
             let map = Arc::new(build_submanifold(
                 input,
@@ -1065,11 +1345,90 @@ mod tests {
             ])
         };
         let t = DenseRows::of_set(&set, 0).expect("dense");
-        let a = build_pairs_with(set.len(), set.coords(), &g, half, |c| t.get(c));
-        let b = build_pairs_with(set.len(), set.coords(), &g, half, |c| {
+        let wrap = |p| KernelMap::eager(27, set.len(), set.len(), p);
+        let a = wrap(build_pairs_with(set.coords(), &g, half, |c| t.get(c)));
+        let b = wrap(build_pairs_with(set.coords(), &g, half, |c| {
             set.find(c).map(|r| r as u32)
-        });
+        }));
         assert_eq!(all_pairs(&a), all_pairs(&b));
         assert!(a.num_pairs() > set.len());
+    }
+
+    /// A deferred map has the output set, pairs, transpose and inverse of the eagerly built one,
+    /// for every kind, on sorted and shuffled, dense and sparse sets (both host lookups of
+    /// [`MapSource`]), and builds no host pairs until asked.
+    #[test]
+    fn deferred_maps_equal_eager_maps() {
+        let kinds = [
+            (MapKind::Submanifold, ConvGeometry::new([3, 3, 3])),
+            (
+                MapKind::Submanifold,
+                ConvGeometry::new([3, 1, 5]).with_dilation([1, 1, 2]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3, 3, 3]).with_padding([1, 1, 1]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3, 3, 3])
+                    .with_stride([2, 2, 2])
+                    .with_padding([1, 1, 1]),
+            ),
+            (
+                MapKind::Transposed {
+                    output_padding: [1, 0, 1],
+                },
+                ConvGeometry::new([3, 2, 3])
+                    .with_stride([2, 2, 1])
+                    .with_padding([1, 0, 1]),
+            ),
+        ];
+        for (ki, (kind, g)) in kinds.into_iter().enumerate() {
+            for (si, (shape, n, sorted)) in [
+                ([12, 9, 6], 300, true),
+                ([12, 9, 6], 300, false),
+                ([120, 90, 40], 200, false),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let seed = 100 + (ki * 3 + si) as u64;
+                let eager_set = Arc::new(random_set(seed, shape, 2, n, sorted));
+                let lazy_set = Arc::new(random_set(seed, shape, 2, n, sorted));
+                let (eo, em) = conv_map(&eager_set, kind, g).unwrap();
+                let (lo, lm) = conv_map_deferred(&lazy_set, kind, g).unwrap();
+                let what = format!("kind {ki}, set {si}");
+                assert!(lm.source().is_some() && !lm.has_host_pairs(), "{what}");
+                assert_eq!(eo.coords(), lo.coords(), "{what}");
+                assert_eq!(
+                    (eo.spatial_shape(), eo.tensor_stride()),
+                    (lo.spatial_shape(), lo.tensor_stride()),
+                    "{what}"
+                );
+                let lt = lm.transposed();
+                assert!(!lt.has_host_pairs(), "{what}: the transpose stays deferred");
+                assert_eq!(
+                    all_pairs(&lt),
+                    all_pairs(&em.transposed()),
+                    "{what}: transpose"
+                );
+                assert_eq!(all_pairs(&lm), all_pairs(&em), "{what}");
+                assert_eq!(lm.gather_table(), em.gather_table(), "{what}");
+                assert_eq!(
+                    conv_map_deferred(&lazy_set, kind, g).unwrap().1.n_out(),
+                    lm.n_out()
+                );
+                if kind == MapKind::Regular && g.stride == [2, 2, 2] {
+                    let (parent, inv) = inverse_of(&lo, g).unwrap();
+                    assert!(Arc::ptr_eq(&parent, &lazy_set));
+                    assert_eq!(
+                        all_pairs(&inv),
+                        all_pairs(&em.transposed()),
+                        "{what}: inverse"
+                    );
+                }
+            }
+        }
     }
 }

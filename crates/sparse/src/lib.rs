@@ -30,7 +30,7 @@ pub use backend::{RowBucket, SparseConvBackend};
 pub use conv::{ConvKind, SparseConv3d, SparseConv3dConfig};
 pub use coords::{full_grid_coords, Coord, CoordSet};
 pub use error::{Result, SparseError};
-pub use kernel_map::{ConvGeometry, KernelMap, KernelMapKey, MapKind};
+pub use kernel_map::{ConvGeometry, KernelMap, KernelMapKey, MapKind, MapRule, MapSource, Sites};
 pub use pool::{SparseMaxPool3d, SparseMaxPool3dConfig};
 pub use rows::{gather_rows, scatter_add_rows, sum_rows, RowPlan};
 pub use tensor::SparseTensor;

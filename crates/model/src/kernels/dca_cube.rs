@@ -38,7 +38,7 @@ use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElemen
 use burn_fusion::{Fusion, FusionTensor};
 use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use occ_sparse::backend::index_tensor;
-use occ_sparse::cube::{inputs_of, register_cube_op};
+use occ_sparse::cube::{address_type_of, inputs_of, register_cube_op};
 use std::sync::Arc;
 
 mod kernel {
@@ -548,14 +548,6 @@ fn layout_data(lay: &SampleLayout, query: &[u32]) -> (Vec<u32>, Vec<f32>) {
     (ints, floats)
 }
 
-fn address_type_of<R: CubeRuntime>(tensors: &[&CubeTensor<R>]) -> cubecl::prelude::AddressType {
-    tensors
-        .iter()
-        .map(|t| t.required_address_type())
-        .max()
-        .unwrap_or_default()
-}
-
 fn elemwise<R: CubeRuntime>(t: &CubeTensor<R>, units: usize) -> (CubeCount, CubeDim) {
     let dim = CubeDim::new(&t.client, units);
     (calculate_cube_count_elemwise(&t.client, units, dim), dim)
@@ -766,20 +758,12 @@ impl CubeDca {
     /// The environment variable.
     pub const ENV: &'static str = "SPARSEOCC_CUBE_DCA";
 
-    /// The process's choice; an unknown value is reported on standard error and the default kept.
+    /// The process's choice, read once ([`occ_sparse::cube::env_choice`]).
     pub fn current() -> Self {
         static CHOICE: std::sync::OnceLock<CubeDca> = std::sync::OnceLock::new();
-        *CHOICE.get_or_init(|| match std::env::var(Self::ENV).as_deref() {
-            Err(_) | Ok("") | Ok("cube") => CubeDca::Inference,
-            Ok("cube-train") => CubeDca::InferenceAndTraining,
-            Ok("tensor-ops") => CubeDca::TensorOps,
-            Ok(other) => {
-                eprintln!(
-                    "warning: {}={other:?} is not `cube`, `cube-train` or `tensor-ops`; using `cube`",
-                    Self::ENV
-                );
-                CubeDca::Inference
-            }
+        *CHOICE.get_or_init(|| {
+            let all = [Self::Inference, Self::InferenceAndTraining, Self::TensorOps];
+            occ_sparse::cube::env_choice(Self::ENV, &all.map(|c| (c.as_str(), c)))
         })
     }
 

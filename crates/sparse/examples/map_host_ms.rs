@@ -1,0 +1,117 @@
+//! Host time of a sparse U-Net's kernel maps per frame (SparseOcc++'s: four levels, SubM 3x3x3 at
+//! each, strided k3 s2 p1 between them, the inverse convolutions back up), built with their host
+//! pairs ([`conv_map`], the CPU path) or deferred ([`conv_map_deferred`], the cubecl backends:
+//! only the strided outputs' sites on the host, the tables on the device).
+//!
+//! `cargo run --release -p occ-sparse --example map_host_ms -- [--repeat R]`
+//! On a ground plane plus boxes in a 256x256x32 grid (SemanticKITTI's), one JSON line per mode.
+
+use occ_sparse::kernel_map::{conv_map, conv_map_deferred, inverse_of, MapKind};
+use occ_sparse::{ConvGeometry, CoordSet};
+use rand::{Rng, SeedableRng};
+use std::sync::Arc;
+use std::time::Instant;
+
+type Build = fn(
+    &Arc<CoordSet>,
+    MapKind,
+    ConvGeometry,
+) -> occ_sparse::error::Result<(Arc<CoordSet>, Arc<occ_sparse::KernelMap>)>;
+
+fn scene() -> Vec<[i32; 4]> {
+    let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let (sx, sy, sz) = (256i32, 256i32, 32i32);
+    let mut occ = vec![false; (sx * sy * sz) as usize];
+    let idx = |x: i32, y: i32, z: i32| ((x * sy + y) * sz + z) as usize;
+    for x in 0..sx {
+        for y in 0..sy {
+            let g = 4 + (x + y) / 180;
+            occ[idx(x, y, g)] = true;
+            occ[idx(x, y, g + 1)] = (x * 7 + y * 3) % 5 == 0;
+        }
+    }
+    for _ in 0..400 {
+        let (w, l, h) = (
+            r.random_range(3..16),
+            r.random_range(3..24),
+            r.random_range(3..20),
+        );
+        let (x0, y0) = (r.random_range(0..sx - w), r.random_range(0..sy - l));
+        for x in x0..x0 + w {
+            for y in y0..y0 + l {
+                for z in 5..(5 + h).min(sz) {
+                    let top = (5 + h).min(sz) - 1;
+                    if x == x0 || x == x0 + w - 1 || y == y0 || y == y0 + l - 1 || z == top {
+                        occ[idx(x, y, z)] = true;
+                    }
+                }
+            }
+        }
+    }
+    let mut v = Vec::new();
+    for x in 0..sx {
+        for y in 0..sy {
+            for z in 0..sz {
+                if occ[idx(x, y, z)] {
+                    v.push([0, x, y, z]);
+                }
+            }
+        }
+    }
+    v
+}
+
+/// The maps of one frame and their transposes; returns how many.
+fn frame(coords: &[[i32; 4]], build: Build) -> usize {
+    let subm = ConvGeometry::new([3, 3, 3]);
+    let down = ConvGeometry::new([3, 3, 3])
+        .with_stride([2; 3])
+        .with_padding([1; 3]);
+    let mut set = Arc::new(CoordSet::new(coords.to_vec(), [256, 256, 32], 1).unwrap());
+    let mut maps = Vec::new();
+    let mut sets = Vec::new();
+    for level in 0..4 {
+        maps.push(build(&set, MapKind::Submanifold, subm).unwrap().1);
+        if level < 3 {
+            let (next, map) = build(&set, MapKind::Regular, down).unwrap();
+            maps.push(map);
+            sets.push(set);
+            set = next;
+        }
+    }
+    for _ in 0..3 {
+        let (parent, map) = inverse_of(&set, down).unwrap();
+        maps.push(map);
+        set = parent;
+    }
+    // Backward passes use every map's transpose.
+    let transposes: Vec<_> = maps.iter().map(|m| m.transposed()).collect();
+    maps.len() + transposes.len()
+}
+
+fn main() {
+    let mut repeat = 5;
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--repeat") {
+        repeat = args.get(i + 1).and_then(|v| v.parse().ok()).unwrap_or(5);
+    }
+    let coords = scene();
+    let modes: [(&str, Build); 2] = [("host_pairs", conv_map), ("deferred", conv_map_deferred)];
+    for (name, build) in modes {
+        let mut times = Vec::new();
+        let mut maps = 0;
+        for _ in 0..repeat {
+            let t0 = Instant::now();
+            maps = frame(&coords, build);
+            // The set's own construction (validation, hash index) is timed in both modes.
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(f64::total_cmp);
+        println!(
+            "{{\"mode\": \"{name}\", \"voxels\": {}, \"maps\": {maps}, \"median_ms\": {:.1}, \"min_ms\": {:.1}}}",
+            coords.len(),
+            times[times.len() / 2],
+            times[0]
+        );
+    }
+}
