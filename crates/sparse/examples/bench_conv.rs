@@ -19,55 +19,20 @@ use std::time::Instant;
 
 type B = NdArray<f32>;
 
+mod scene;
+
 /// Ground plane (z = 2..3 with gentle slope), plus 120 boxes (cars, buildings, poles), hollow like a
 /// LiDAR-visible surface would be dense near the ground: about 53k voxels.
 pub fn driving_scene(seed: u64) -> Vec<[i32; 4]> {
-    let mut r = ChaCha8Rng::seed_from_u64(seed);
-    let (sx, sy, sz) = (128i32, 128i32, 16i32);
-    let mut occ = vec![false; (sx * sy * sz) as usize];
-    let idx = |x: i32, y: i32, z: i32| ((x * sy + y) * sz + z) as usize;
-    for x in 0..sx {
-        for y in 0..sy {
-            let g = 2 + ((x + y) / 90);
-            occ[idx(x, y, g)] = true;
-            if (x * 7 + y * 3) % 5 == 0 {
-                occ[idx(x, y, g + 1)] = true;
-            }
-        }
-    }
-    for _ in 0..120 {
-        let (w, l, h) = (
-            r.random_range(2..10),
-            r.random_range(2..14),
-            r.random_range(2..12),
-        );
-        let (x0, y0) = (r.random_range(0..sx - w), r.random_range(0..sy - l));
-        for x in x0..x0 + w {
-            for y in y0..y0 + l {
-                for z in 3..(3 + h).min(sz) {
-                    let surface = x == x0
-                        || x == x0 + w - 1
-                        || y == y0
-                        || y == y0 + l - 1
-                        || z == (3 + h).min(sz) - 1;
-                    if surface {
-                        occ[idx(x, y, z)] = true;
-                    }
-                }
-            }
-        }
-    }
-    let mut v = Vec::new();
-    for x in 0..sx {
-        for y in 0..sy {
-            for z in 0..sz {
-                if occ[idx(x, y, z)] {
-                    v.push([0, x, y, z]);
-                }
-            }
-        }
-    }
-    v
+    let spec = scene::SceneSpec {
+        shape: [128, 128, 16],
+        ground_z: 2,
+        slope: 90,
+        boxes: 120,
+        box_z: 3,
+        extent: [(2, 10), (2, 14), (2, 12)],
+    };
+    scene::driving_scene(&spec, seed)
 }
 
 fn main() {

@@ -8,7 +8,6 @@
 
 use occ_sparse::kernel_map::{conv_map, conv_map_deferred, inverse_of, MapKind};
 use occ_sparse::{ConvGeometry, CoordSet};
-use rand::{Rng, SeedableRng};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -18,47 +17,19 @@ type Build = fn(
     ConvGeometry,
 ) -> occ_sparse::error::Result<(Arc<CoordSet>, Arc<occ_sparse::KernelMap>)>;
 
+mod scene;
+
+/// SemanticKITTI's grid, 400 boxes: 250,959 voxels.
 fn scene() -> Vec<[i32; 4]> {
-    let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let (sx, sy, sz) = (256i32, 256i32, 32i32);
-    let mut occ = vec![false; (sx * sy * sz) as usize];
-    let idx = |x: i32, y: i32, z: i32| ((x * sy + y) * sz + z) as usize;
-    for x in 0..sx {
-        for y in 0..sy {
-            let g = 4 + (x + y) / 180;
-            occ[idx(x, y, g)] = true;
-            occ[idx(x, y, g + 1)] = (x * 7 + y * 3) % 5 == 0;
-        }
-    }
-    for _ in 0..400 {
-        let (w, l, h) = (
-            r.random_range(3..16),
-            r.random_range(3..24),
-            r.random_range(3..20),
-        );
-        let (x0, y0) = (r.random_range(0..sx - w), r.random_range(0..sy - l));
-        for x in x0..x0 + w {
-            for y in y0..y0 + l {
-                for z in 5..(5 + h).min(sz) {
-                    let top = (5 + h).min(sz) - 1;
-                    if x == x0 || x == x0 + w - 1 || y == y0 || y == y0 + l - 1 || z == top {
-                        occ[idx(x, y, z)] = true;
-                    }
-                }
-            }
-        }
-    }
-    let mut v = Vec::new();
-    for x in 0..sx {
-        for y in 0..sy {
-            for z in 0..sz {
-                if occ[idx(x, y, z)] {
-                    v.push([0, x, y, z]);
-                }
-            }
-        }
-    }
-    v
+    let spec = scene::SceneSpec {
+        shape: [256, 256, 32],
+        ground_z: 4,
+        slope: 180,
+        boxes: 400,
+        box_z: 5,
+        extent: [(3, 16), (3, 24), (3, 20)],
+    };
+    scene::driving_scene(&spec, 7)
 }
 
 /// The maps of one frame and their transposes; returns how many.

@@ -876,39 +876,58 @@ pub fn sparse_conv_weight_grad_fetch<R: CubeRuntime>(
     output
 }
 
-/// How the cubecl backends compute a sparse convolution whose map has a gather table.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CubeConv {
-    /// The `#[cube]` kernels of this module ([`sparse_conv_fetch`],
-    /// [`sparse_conv_weight_grad_fetch`]): neighbours read on demand, absent ones skipped by tile.
-    Fetch,
-    /// The portable burn-op path ([`crate::backend::conv_forward_portable`]): the `[rows, K·C_in]`
-    /// block gathered into a buffer, then cubecl's matrix product (tensor cores where there are).
-    GatherGemm,
+crate::env_switch! {
+    /// How the cubecl backends compute a sparse convolution whose map has a gather table.
+    pub enum CubeConv: "SPARSEOCC_CUBE_CONV" {
+        /// `fetch` (the default): the `#[cube]` kernels of this module ([`sparse_conv_fetch`],
+        /// [`sparse_conv_weight_grad_fetch`]): neighbours read on demand, absent ones skipped
+        /// by tile.
+        Fetch = "fetch",
+        /// `gather-gemm`: the portable burn-op path ([`crate::backend::conv_forward_portable`]):
+        /// the `[rows, K·C_in]` block gathered into a buffer, then cubecl's matrix product
+        /// (tensor cores where there are).
+        GatherGemm = "gather-gemm",
+    }
 }
 
-impl CubeConv {
-    /// The environment variable that chooses the compute: `fetch` (the default) or `gather-gemm`.
-    pub const ENV: &'static str = "SPARSEOCC_CUBE_CONV";
-
-    /// The process's choice, read from [`CubeConv::ENV`] once ([`env_choice`]).
-    pub fn current() -> Self {
-        static CHOICE: std::sync::OnceLock<CubeConv> = std::sync::OnceLock::new();
-        *CHOICE.get_or_init(|| {
-            env_choice(
-                Self::ENV,
-                &[Self::Fetch, Self::GatherGemm].map(|c| (c.as_str(), c)),
-            )
-        })
-    }
-
-    /// Its name, as [`CubeConv::ENV`] takes it.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            CubeConv::Fetch => "fetch",
-            CubeConv::GatherGemm => "gather-gemm",
+/// Declares a switch of the cubecl paths that the environment chooses once: an enum whose first
+/// variant is the default, with `ENV` (the variable), `current()` (the process's choice, read by
+/// [`env_choice`]) and `as_str()` (the name the variable takes).
+#[macro_export]
+macro_rules! env_switch {
+    (
+        $(#[$meta:meta])*
+        $vis:vis enum $name:ident: $env:literal {
+            $($(#[$vmeta:meta])* $variant:ident = $text:literal),+ $(,)?
         }
-    }
+    ) => {
+        $(#[$meta])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+        $vis enum $name {
+            $($(#[$vmeta])* $variant),+
+        }
+
+        impl $name {
+            /// The environment variable that chooses (the first variant when unset or empty).
+            pub const ENV: &'static str = $env;
+
+            /// The process's choice, read from `ENV` once; an unknown value is reported on
+            /// standard error and the default kept.
+            pub fn current() -> Self {
+                static CHOICE: std::sync::OnceLock<$name> = std::sync::OnceLock::new();
+                *CHOICE.get_or_init(|| {
+                    $crate::cube::env_choice(Self::ENV, &[$(($text, Self::$variant)),+])
+                })
+            }
+
+            /// Its name, as `ENV` takes it.
+            pub fn as_str(self) -> &'static str {
+                match self {
+                    $(Self::$variant => $text),+
+                }
+            }
+        }
+    };
 }
 
 /// The value of environment variable `env` among `choices` (name, value); the first choice when
@@ -934,37 +953,15 @@ pub fn env_choice<T: Copy>(env: &str, choices: &[(&'static str, T)]) -> T {
     }
 }
 
-/// Where the cubecl backends build the gather tables of their kernel maps.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CubeMaps {
-    /// On the device, from the maps' sites ([`build_gather_table`]): the host computes only
-    /// the output sites of strided and transposed convolutions, and builds no pairs.
-    Device,
-    /// On the host ([`crate::kernel_map::conv_map`]), uploaded once per map.
-    Host,
-}
-
-impl CubeMaps {
-    /// The environment variable that chooses: `device` (the default) or `host`.
-    pub const ENV: &'static str = "SPARSEOCC_CUBE_MAPS";
-
-    /// The process's choice, read from [`CubeMaps::ENV`] once ([`env_choice`]).
-    pub fn current() -> Self {
-        static CHOICE: std::sync::OnceLock<CubeMaps> = std::sync::OnceLock::new();
-        *CHOICE.get_or_init(|| {
-            env_choice(
-                Self::ENV,
-                &[Self::Device, Self::Host].map(|c| (c.as_str(), c)),
-            )
-        })
-    }
-
-    /// Its name, as [`CubeMaps::ENV`] takes it.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            CubeMaps::Device => "device",
-            CubeMaps::Host => "host",
-        }
+crate::env_switch! {
+    /// Where the cubecl backends build the gather tables of their kernel maps.
+    pub enum CubeMaps: "SPARSEOCC_CUBE_MAPS" {
+        /// `device` (the default): on the device, from the maps' sites ([`build_gather_table`]);
+        /// the host computes only the output sites of strided and transposed convolutions, and
+        /// builds no pairs.
+        Device = "device",
+        /// `host`: on the host ([`crate::kernel_map::conv_map`]), uploaded once per map.
+        Host = "host",
     }
 }
 

@@ -741,39 +741,16 @@ type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
 type Ad<R, F, I, BT, C> = Autodiff<Fused<R, F, I, BT>, C>;
 type FusedTensor<R> = FusionTensor<FusionCubeRuntime<R>>;
 
-/// Which DCA sampling the cubecl backends run, chosen by the environment variable
-/// `SPARSEOCC_CUBE_DCA` (read once).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CubeDca {
-    /// `cube` (the default): these kernels in inference; training through the portable
-    /// tensor-op composition ([`crate::kernels::dca::sample_tensor_ops`]).
-    Inference,
-    /// `cube-train`: these kernels in inference and training (forward and backward).
-    InferenceAndTraining,
-    /// `tensor-ops`: the portable composition everywhere.
-    TensorOps,
-}
-
-impl CubeDca {
-    /// The environment variable.
-    pub const ENV: &'static str = "SPARSEOCC_CUBE_DCA";
-
-    /// The process's choice, read once ([`occ_sparse::cube::env_choice`]).
-    pub fn current() -> Self {
-        static CHOICE: std::sync::OnceLock<CubeDca> = std::sync::OnceLock::new();
-        *CHOICE.get_or_init(|| {
-            let all = [Self::Inference, Self::InferenceAndTraining, Self::TensorOps];
-            occ_sparse::cube::env_choice(Self::ENV, &all.map(|c| (c.as_str(), c)))
-        })
-    }
-
-    /// Its name, as [`CubeDca::ENV`] takes it.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            CubeDca::Inference => "cube",
-            CubeDca::InferenceAndTraining => "cube-train",
-            CubeDca::TensorOps => "tensor-ops",
-        }
+occ_sparse::env_switch! {
+    /// Which DCA sampling the cubecl backends run.
+    pub enum CubeDca: "SPARSEOCC_CUBE_DCA" {
+        /// `cube` (the default): these kernels in inference; training through the portable
+        /// tensor-op composition ([`crate::kernels::dca::sample_tensor_ops`]).
+        Inference = "cube",
+        /// `cube-train`: these kernels in inference and training (forward and backward).
+        InferenceAndTraining = "cube-train",
+        /// `tensor-ops`: the portable composition everywhere.
+        TensorOps = "tensor-ops",
     }
 }
 
