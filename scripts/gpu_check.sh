@@ -10,8 +10,9 @@
 #      peer of the default `#[cube]` kernels), the same with the DCA sampling as burn tensor ops
 #      (`SPARSEOCC_CUBE_DCA=tensor-ops`, the peer of its `#[cube]` kernel; DCA=0 skips it), the same
 #      with the kernel maps built on the host (`SPARSEOCC_CUBE_MAPS=host`, the peer of the
-#      device-built tables; MAPS=0 skips it), then the three models side by side, then (SCAN=1) the
-#      memory scan.
+#      device-built tables; MAPS=0 skips it), the same with burn's direct image convolutions
+#      (`SPARSEOCC_CUBE_CONV2D=direct`, the peer of im2col + matmul; CONV2D=0 skips it), then the
+#      three models side by side, then (SCAN=1) the memory scan.
 # Kernel caches: cubecl's compiled-kernel and autotune caches (`SPARSEOCC_KERNEL_CACHE`) and the CUDA
 # driver's (`CUDA_CACHE_PATH`) live in OUT/kernel_cache/<first 16 hex of the binary's sha256>, so they
 # come back with the output; CACHE_FROM=<an earlier OUT> copies that folder in first (same binary:
@@ -77,6 +78,10 @@ fi
 if [ "${MAPS:-1}" = 1 ]; then
   step bench_pp_host_maps "$T_BENCH" env SPARSEOCC_CUBE_MAPS=host "$BIN" bench \
     --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_host_maps.json"
+fi
+if [ "${CONV2D:-1}" = 1 ]; then
+  step bench_pp_direct_conv2d "$T_BENCH" env SPARSEOCC_CUBE_CONV2D=direct "$BIN" bench \
+    --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_direct_conv2d.json"
 fi
 if [ "${ALL:-1}" = 1 ]; then
   step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \

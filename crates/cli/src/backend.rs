@@ -58,9 +58,10 @@ pub fn device() -> burn::tensor::Device<Infer> {
 pub fn describe() -> String {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
     let conv = format!(
-        "{}, maps {}, dca {}",
+        "{}, maps {}, conv2d {}, dca {}",
         occ_sparse::cube::CubeConv::current().as_str(),
         occ_sparse::cube::CubeMaps::current().as_str(),
+        occ_model::kernels::conv2d_cube::CubeConv2d::current().as_str(),
         occ_model::kernels::dca_cube::CubeDca::current().as_str()
     );
     #[cfg(not(any(feature = "cuda", feature = "wgpu")))]

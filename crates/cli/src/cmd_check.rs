@@ -511,6 +511,11 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     worst = worst.max(e);
     results.push(case);
 
+    for case in conv2d_inference_cases(&cpu_dev, &dev) {
+        worst = worst.max(case["forward"].as_f64().unwrap_or(f64::INFINITY));
+        results.push(case);
+    }
+
     // DCA sampling (forward and gradients of values, offsets, weights and gate).
     let (e, case) = dca_case(&cpu_dev, &dev)?;
     worst = worst.max(e);
@@ -1491,6 +1496,149 @@ fn conv2d_case(
     }
     eprintln!("{name}: rel err{line}");
     (worst, case)
+}
+
+/// The image convolutions in inference as the model runs them on the backend
+/// (`occ_model::kernels::conv2d_host::conv_bn`: on the cubecl backends im2col + matrix product)
+/// against the CPU reference's: several images, asymmetric padding, dilation, a pointwise and a
+/// strided pointwise convolution, and one whose unfolding runs in two column blocks.
+fn conv2d_inference_cases(
+    cpu_dev: &burn::tensor::Device<Cpu>,
+    dev: &burn::tensor::Device<Infer>,
+) -> Vec<serde_json::Value> {
+    use burn::nn::conv::{Conv2d, Conv2dConfig};
+    use burn::nn::PaddingConfig2d;
+    use occ_model::kernels::conv2d_host::conv_bn;
+    // (name, images, cin, cout, h, w, kernel, stride, padding (t, l, b, r), dilation)
+    #[allow(clippy::type_complexity)]
+    let cases: [(
+        &str,
+        usize,
+        usize,
+        usize,
+        usize,
+        usize,
+        [usize; 2],
+        [usize; 2],
+        [usize; 4],
+        [usize; 2],
+    ); 5] = [
+        (
+            "conv2d_infer_b3_k3_s2_pad_asym",
+            3,
+            5,
+            7,
+            19,
+            23,
+            [3, 3],
+            [2, 2],
+            [1, 0, 2, 1],
+            [1, 1],
+        ),
+        (
+            "conv2d_infer_b2_k3x5_dil2",
+            2,
+            4,
+            6,
+            17,
+            21,
+            [3, 5],
+            [1, 1],
+            [2, 4, 2, 4],
+            [2, 2],
+        ),
+        (
+            "conv2d_infer_b3_pointwise",
+            3,
+            6,
+            5,
+            9,
+            11,
+            [1, 1],
+            [1, 1],
+            [0; 4],
+            [1, 1],
+        ),
+        (
+            "conv2d_infer_b2_pointwise_s2",
+            2,
+            6,
+            5,
+            9,
+            11,
+            [1, 1],
+            [2, 2],
+            [0; 4],
+            [1, 1],
+        ),
+        // 576 unfolded rows x 60,000 positions: more than one block of 2^25 values.
+        (
+            "conv2d_infer_k3_two_blocks",
+            1,
+            64,
+            8,
+            200,
+            300,
+            [3, 3],
+            [1, 1],
+            [1; 4],
+            [1, 1],
+        ),
+    ];
+    let mut out = Vec::new();
+    for (i, (name, n, cin, cout, h, w, k, stride, [t, l, b, r], dil)) in
+        cases.into_iter().enumerate()
+    {
+        let mut rnd = lcg(900 + i as u64);
+        let mut draw = |len: usize| (0..len).map(|_| rnd()).collect::<Vec<f32>>();
+        let x = draw(n * cin * h * w);
+        let wv = draw(cout * cin * k[0] * k[1]);
+        let bv = draw(cout);
+        fn conv<Bk: Backend>(
+            cfg: &Conv2dConfig,
+            w: &[f32],
+            b: &[f32],
+            dev: &burn::tensor::Device<Bk>,
+        ) -> Conv2d<Bk> {
+            let mut c = cfg.init::<Bk>(dev);
+            let [o, i, kh, kw] = c.weight.dims();
+            c.weight = burn::module::Param::from_tensor(Tensor::from_data(
+                TensorData::new(w.to_vec(), [o, i, kh, kw]),
+                dev,
+            ));
+            c.bias = Some(burn::module::Param::from_tensor(Tensor::from_data(
+                TensorData::new(b.to_vec(), [o]),
+                dev,
+            )));
+            c
+        }
+        let cfg = Conv2dConfig::new([cin, cout], k)
+            .with_stride(stride)
+            .with_dilation(dil)
+            .with_padding(PaddingConfig2d::Explicit(t, l, b, r));
+        let xs = [n, cin, h, w];
+        let reference = conv_bn(
+            &conv::<Cpu>(&cfg, &wv, &bv, cpu_dev),
+            None,
+            Tensor::<Cpu, 4>::from_data(TensorData::new(x.clone(), xs), cpu_dev),
+            false,
+        );
+        let got = conv_bn(
+            &conv::<Infer>(&cfg, &wv, &bv, dev),
+            None,
+            Tensor::<Infer, 4>::from_data(TensorData::new(x, xs), dev),
+            false,
+        );
+        let (dims_ref, dims_got) = (reference.dims(), got.dims());
+        let e = if dims_ref == dims_got {
+            rel_err(&to_vec(got), &to_vec(reference))
+        } else {
+            f64::INFINITY
+        };
+        eprintln!("{name}: {dims_got:?} (reference {dims_ref:?}), rel err {e:.2e}");
+        out.push(serde_json::json!({"case": name, "forward": e, "shape": dims_got}));
+    }
+    out
 }
 
 /// The other ops of the image encoder's backward, each on a seeded input with the gradient of

@@ -7,7 +7,7 @@
 //!
 //! | kernel | portable default | `NdArray<T>` | `Autodiff<NdArray<T>, C>` |
 //! |---|---|---|---|
-//! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
+//! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` (on the cubecl backends in inference: `conv2d_cube`, im2col + matmul) | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
 //! | [`ModelBackend::dca_sample`] | [`dca::sample_tensor_ops`] (`grid_sample`) | host loop | host loop as one autodiff op |
 //! | [`ModelBackend::row_linear`], [`ModelBackend::row_layer_norm`], [`ModelBackend::row_softmax`] | burn's `Linear` (+ `relu`), `LayerNorm`, `softmax` | row-wise host loops (`rows_host`: bias and ReLU fused into the GEMM output, one pass per row) | burn's (portable) |
 //!
@@ -228,12 +228,28 @@ impl<B: ModelBackend, C: CheckpointStrategy> ModelBackend for Autodiff<B, C> {
     }
 }
 
-/// The cubecl backends: the DCA sampling as `#[cube]` kernels in inference (and, with
-/// `SPARSEOCC_CUBE_DCA=cube-train`, in training; see [`crate::kernels::dca_cube::CubeDca`]), the
-/// rest portable.
+/// The cubecl backends: the image-side convolutions in inference as im2col + matrix product
+/// ([`crate::kernels::conv2d_cube`]; `SPARSEOCC_CUBE_CONV2D=direct` keeps burn's), the DCA
+/// sampling as `#[cube]` kernels in inference (and, with `SPARSEOCC_CUBE_DCA=cube-train`, in
+/// training; see [`crate::kernels::dca_cube::CubeDca`]), the rest portable.
 #[cfg(feature = "cube")]
 macro_rules! cube_model_backend {
     ($runtime:ty, $f:ty, $i:ty, $b:ty) => {
+        fn conv2d_bn(
+            conv: &Conv2d<Self>,
+            bn: Option<&BatchNorm<Self>>,
+            x: Tensor<Self, 4>,
+            apply_relu: bool,
+        ) -> Tensor<Self, 4> {
+            use crate::kernels::conv2d_cube::{conv2d, CubeConv2d};
+            if CubeConv2d::current() == CubeConv2d::Im2col {
+                if let Some(y) = conv2d::<$runtime, $f, $i, $b>(conv, x.clone()) {
+                    return bn_relu(y, bn, apply_relu);
+                }
+            }
+            conv_bn_portable(conv, bn, x, apply_relu)
+        }
+
         fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {
             use crate::kernels::dca_cube::CubeDca;
             if CubeDca::current() != CubeDca::TensorOps {

@@ -142,7 +142,7 @@ where
 }
 
 /// Padding `(top, left, bottom, right)` of an ungrouped convolution with explicit or no padding.
-fn padding_of<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
+pub(crate) fn padding_of<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
     if conv.groups != 1 {
         return None;
     }
@@ -155,23 +155,23 @@ fn padding_of<B: Backend>(conv: &Conv2d<B>) -> Option<[usize; 4]> {
 
 /// Geometry of one convolution.
 #[derive(Clone, Copy, Debug)]
-struct Geometry {
-    h: usize,
-    w: usize,
-    kh: usize,
-    kw: usize,
-    stride: [usize; 2],
-    dilation: [usize; 2],
+pub(crate) struct Geometry {
+    pub(crate) h: usize,
+    pub(crate) w: usize,
+    pub(crate) kh: usize,
+    pub(crate) kw: usize,
+    pub(crate) stride: [usize; 2],
+    pub(crate) dilation: [usize; 2],
     /// `(top, left)`.
-    pad: [usize; 2],
-    ho: usize,
-    wo: usize,
+    pub(crate) pad: [usize; 2],
+    pub(crate) ho: usize,
+    pub(crate) wo: usize,
 }
 
 impl Geometry {
     /// The geometry of `conv` on an input of `x_dims` with padding `(top, left, bottom, right)`;
     /// `None` when the sizes do not fit (burn then reports the error).
-    fn of<B: Backend>(
+    pub(crate) fn of<B: Backend>(
         conv: &Conv2d<B>,
         x_dims: [usize; 4],
         [top, left, bottom, right]: [usize; 4],
@@ -291,7 +291,7 @@ impl Geometry {
     }
 
     /// `true` when the input matrix `[C_in, H·W]` already is the unfolded one.
-    fn is_pointwise(&self) -> bool {
+    pub(crate) fn is_pointwise(&self) -> bool {
         self.kh == 1 && self.kw == 1 && self.stride == [1, 1] && self.pad == [0, 0]
     }
 

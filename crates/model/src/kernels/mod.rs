@@ -19,6 +19,8 @@
 //! that the CPU backends take the fast paths).
 
 mod backend;
+#[cfg(feature = "cube")]
+pub mod conv2d_cube;
 pub mod conv2d_host;
 pub mod dca;
 #[cfg(feature = "cube")]
