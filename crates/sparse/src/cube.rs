@@ -956,7 +956,7 @@ pub fn env_choice<T: Copy>(env: &str, choices: &[(&'static str, T)]) -> T {
 crate::env_switch! {
     /// Where the cubecl backends build the gather tables of their kernel maps.
     pub enum CubeMaps: "SPARSEOCC_CUBE_MAPS" {
-        /// `device` (the default): on the device, from the maps' sites ([`build_gather_table`]);
+        /// `device` (the default): on the device, from the maps' sites (`build_gather_table`);
         /// the host computes only the output sites of strided and transposed convolutions, and
         /// builds no pairs.
         Device = "device",
@@ -965,7 +965,7 @@ crate::env_switch! {
     }
 }
 
-/// Most cells of the dense grid [`build_gather_table`] indexes the input sites with (1 GiB of
+/// Most cells of the dense grid `build_gather_table` indexes the input sites with (1 GiB of
 /// `i32`); a map over a larger grid gets its table from the host.
 pub const MAX_DEVICE_GRID: usize = 1 << 28;
 
@@ -987,7 +987,8 @@ fn device_grid_cells(source: &MapSource) -> Option<usize> {
     (nonempty && fits).then_some(cells)
 }
 
-/// Builds a kernel map's gather table on the device from its sites: the input sites' rows are
+/// Builds a kernel map's gather table on the device from its sites (crate-private: the cell
+/// indices must come from a [`MapSource`], whose sites lie on their grids): the input sites' rows are
 /// written into a dense grid of their cells (spconv 1.x's dense index; a bounded voxel grid needs
 /// no hash), then every (output row, offset) reads the cell its rule reaches. Integer work, no
 /// atomics: the table equals [`KernelMap::gather_table`] entry for entry.
@@ -995,7 +996,7 @@ fn device_grid_cells(source: &MapSource) -> Option<usize> {
 /// # Shapes
 /// - inputs: `[n_in]`, outputs: `[n_out]` (each site's linear index in its grid, the int dtype)
 ///   -> `[n_out · K]`
-pub fn build_gather_table<R: CubeRuntime>(
+pub(crate) fn build_gather_table<R: CubeRuntime>(
     inputs: CubeTensor<R>,
     outputs: CubeTensor<R>,
     source: &MapSource,

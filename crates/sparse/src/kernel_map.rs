@@ -188,18 +188,32 @@ pub enum MapRule {
     Backward,
 }
 
-/// One side of a map: its sites (row `i` = coordinate `i`) and the grid they lie in.
+/// One side of a map: its sites (row `i` = coordinate `i`) and the grid they lie in. Made only
+/// from a [`CoordSet`], so every site is unique and on its grid (what a device builder relies on).
 #[derive(Clone, Debug)]
 pub struct Sites {
     /// `(b, x, y, z)` of every row.
-    pub coords: Arc<Vec<Coord>>,
+    pub(crate) coords: Arc<Vec<Coord>>,
     /// Grid shape `(X, Y, Z)`.
-    pub shape: [usize; 3],
+    pub(crate) shape: [usize; 3],
     /// Batch size.
-    pub batch: usize,
+    pub(crate) batch: usize,
 }
 
 impl Sites {
+    /// `(b, x, y, z)` of every row.
+    pub fn coords(&self) -> &[Coord] {
+        &self.coords
+    }
+    /// Grid shape `(X, Y, Z)`.
+    pub fn shape(&self) -> [usize; 3] {
+        self.shape
+    }
+    /// Batch size.
+    pub fn batch(&self) -> usize {
+        self.batch
+    }
+
     fn of(set: &CoordSet) -> Self {
         Self {
             coords: set.shared_coords(),
@@ -211,20 +225,38 @@ impl Sites {
 
 /// What a map connects: output row `o` and offset `k` reach the input site
 /// `rule(outputs[o], k)` when it is one of `inputs`. Everything a builder needs, on the host
-/// ([`KernelMap::pairs`]) or on a device.
+/// ([`KernelMap::pairs`]) or on a device. Made only by [`conv_map_deferred`] (read-only outside
+/// this crate).
 #[derive(Clone, Debug)]
 pub struct MapSource {
     /// The rule.
-    pub rule: MapRule,
+    pub(crate) rule: MapRule,
     /// Kernel, stride, padding and dilation of the rule.
-    pub geometry: ConvGeometry,
+    pub(crate) geometry: ConvGeometry,
     /// The map's input rows.
-    pub inputs: Sites,
+    pub(crate) inputs: Sites,
     /// The map's output rows.
-    pub outputs: Sites,
+    pub(crate) outputs: Sites,
 }
 
 impl MapSource {
+    /// The rule.
+    pub fn rule(&self) -> MapRule {
+        self.rule
+    }
+    /// Kernel, stride, padding and dilation of the rule.
+    pub fn geometry(&self) -> ConvGeometry {
+        self.geometry
+    }
+    /// The map's input rows.
+    pub fn inputs(&self) -> &Sites {
+        &self.inputs
+    }
+    /// The map's output rows.
+    pub fn outputs(&self) -> &Sites {
+        &self.outputs
+    }
+
     /// The input coordinate that output coordinate `o` reaches through offset `k`, before the
     /// bounds check (`None` where a [`MapRule::Backward`] division is not exact or negative).
     #[inline]
