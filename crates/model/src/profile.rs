@@ -303,15 +303,18 @@ pub fn mark<B: Backend, const D: usize>(stage: Stage, done: &Tensor<B, D>) {
     if !on {
         return;
     }
+    // The stage's time ends at the sync; reading its counts (device pair counts of deferred maps)
+    // is outside it and outside the next one.
+    let ms = PROFILE.with(|p| {
+        p.borrow()
+            .as_ref()
+            .map(|(t, _)| t.elapsed().as_secs_f64() * 1e3)
+    });
     drain_sparse();
     let macs = STAGE_MACS.with(|c| c.replace(0));
     PROFILE.with(|p| {
-        if let Some((t, v)) = p.borrow_mut().as_mut() {
-            v.push(StageRecord {
-                stage,
-                ms: t.elapsed().as_secs_f64() * 1e3,
-                macs,
-            });
+        if let (Some((t, v)), Some(ms)) = (p.borrow_mut().as_mut(), ms) {
+            v.push(StageRecord { stage, ms, macs });
             *t = Instant::now();
         }
     });

@@ -422,6 +422,18 @@ pub trait SparseConvBackend: Backend {
         None
     }
 
+    /// The pair count of `map` from its table on `device`, as a count to read later (after the
+    /// caller synchronises: [`crate::flops::add_later`]), for a map without host pairs whose table
+    /// this backend builds on its device. `None` (the default) where there is no such table: the
+    /// caller then counts the host pairs.
+    fn device_pair_count(
+        map: &KernelMap,
+        device: &burn::tensor::Device<Self>,
+    ) -> Option<Box<dyn FnOnce() -> usize>> {
+        let _ = (map, device);
+        None
+    }
+
     /// `y[o] += W_k x[i]` over the pairs of `map`.
     ///
     /// # Shapes
@@ -678,6 +690,13 @@ macro_rules! cube_sparse_conv {
             crate::cube::read_device_gather_table::<$runtime, $f, $i, $b>(map, device)
         }
 
+        fn device_pair_count(
+            map: &KernelMap,
+            device: &burn::tensor::Device<Self>,
+        ) -> Option<Box<dyn FnOnce() -> usize>> {
+            crate::cube::device_pair_count::<$runtime, $f, $i, $b>(map, device)
+        }
+
         fn sparse_conv(
             x: FloatTensor<Self>,
             w: FloatTensor<Self>,
@@ -837,6 +856,13 @@ impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff
         device: &burn::tensor::Device<Self>,
     ) -> Option<Vec<u32>> {
         B::device_gather_table(map, device)
+    }
+
+    fn device_pair_count(
+        map: &KernelMap,
+        device: &burn::tensor::Device<Self>,
+    ) -> Option<Box<dyn FnOnce() -> usize>> {
+        B::device_pair_count(map, device)
     }
 
     fn scatter_add_rows(values: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {

@@ -180,8 +180,15 @@ pub fn sparse_conv3d<B: SparseConvBackend>(
     };
     let kv = kx * ky * kz;
     if crate::flops::enabled() {
-        // Counting needs the pair count: a deferred map builds its host pairs here.
-        crate::flops::add((map.num_pairs() * cin * cout) as u64);
+        // A map without host pairs is counted from its device table, read after the next sync:
+        // counting never builds host pairs the computation does not need.
+        let macs_per_pair = (cin * cout) as u64;
+        match B::device_pair_count(&map, &input.device()).filter(|_| !map.has_host_pairs()) {
+            Some(count) => {
+                crate::flops::add_later(Box::new(move || count() as u64 * macs_per_pair))
+            }
+            None => crate::flops::add(map.num_pairs() as u64 * macs_per_pair),
+        }
     }
     let w = weight.reshape([cout, kv, cin]);
     let mut feats = sparse_conv(input.into_feats(), w, map, false);

@@ -1175,6 +1175,34 @@ where
     Some(v.into_iter().map(|x| x as u32).collect())
 }
 
+/// The pair count of a map without host pairs, from [`device_gather_table`] (its entries below
+/// `n_in`), as a count to call later: the table is queued now and read back when the count is
+/// called. `None` for a map with host pairs (count those) or without a gather table.
+pub fn device_pair_count<R, F, I, BT>(
+    map: &KernelMap,
+    device: &burn::tensor::Device<Fusion<CubeBackend<R, F, I, BT>>>,
+) -> Option<Box<dyn FnOnce() -> usize>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    if map.has_host_pairs() {
+        return None;
+    }
+    let t = device_gather_table::<R, F, I, BT>(map, device)?;
+    let n_in = map.n_in() as i64;
+    Some(Box::new(move || {
+        let t = BurnTensor::<Fusion<CubeBackend<R, F, I, BT>>, 1, Int>::from_primitive(t);
+        // A failed read shows again at the next read of a result; count nothing here.
+        t.into_data()
+            .convert::<i64>()
+            .to_vec::<i64>()
+            .map_or(0, |v| v.into_iter().filter(|&i| i < n_in).count())
+    }))
+}
+
 /// Sparse convolution on a fused cubecl backend with [`sparse_conv_fetch`]; `Err` with the
 /// inputs when the map has no gather table or the process chose [`CubeConv::GatherGemm`].
 ///

@@ -5,18 +5,27 @@
 //! weight's channels) and callers (a profiler) drain the count with [`take`]. The count is the
 //! forward pass only; bias additions and the kernel-map build are not multiply-adds and are not
 //! counted.
+//!
+//! A map whose table lives only on a device (built there, without host pairs) is counted from that
+//! table: the count is queued with [`add_later`] and read back at the next [`take`], which callers
+//! make after synchronising, so that counting neither builds host pairs nor stalls the pass.
 
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
+
+/// A count read later (at [`take`]).
+pub type LaterCount = Box<dyn FnOnce() -> u64>;
 
 thread_local! {
     static ON: Cell<bool> = const { Cell::new(false) };
     static MACS: Cell<u64> = const { Cell::new(0) };
+    static LATER: RefCell<Vec<LaterCount>> = const { RefCell::new(Vec::new()) };
 }
 
 /// Turns counting on or off for this thread (clearing the count).
 pub fn enable(on: bool) {
     ON.with(|c| c.set(on));
     MACS.with(|m| m.set(0));
+    LATER.with(|l| l.borrow_mut().clear());
 }
 
 /// Whether counting is on for this thread.
@@ -32,9 +41,20 @@ pub fn add(macs: u64) {
     }
 }
 
-/// The multiply-adds counted since the last `take` (or `enable`), cleared.
+/// Adds the multiply-adds that `count` returns when it is called, at the next [`take`] (when
+/// counting is on; `count` is dropped uncalled otherwise).
+pub fn add_later(count: LaterCount) {
+    if enabled() {
+        LATER.with(|l| l.borrow_mut().push(count));
+    }
+}
+
+/// The multiply-adds counted since the last `take` (or `enable`), cleared. Reads the counts queued
+/// with [`add_later`].
 pub fn take() -> u64 {
-    MACS.with(|m| m.replace(0))
+    let later = LATER.with(|l| std::mem::take(&mut *l.borrow_mut()));
+    let n = later.into_iter().fold(0u64, |n, f| n.saturating_add(f()));
+    MACS.with(|m| m.replace(0)).saturating_add(n)
 }
 
 #[cfg(test)]
@@ -86,5 +106,23 @@ mod tests {
         );
         assert_eq!(take(), 4 * 2 * 5);
         enable(false);
+    }
+
+    #[test]
+    fn later_counts_are_read_at_take_and_dropped_when_off() {
+        enable(true);
+        add(3);
+        add_later(Box::new(|| 40));
+        add_later(Box::new(|| 500));
+        assert_eq!(take(), 543);
+        assert_eq!(take(), 0, "take reads each later count once");
+        add_later(Box::new(|| 7));
+        enable(true);
+        assert_eq!(take(), 0, "enable clears queued counts");
+        enable(false);
+        add_later(Box::new(|| {
+            unreachable!("not queued while counting is off")
+        }));
+        assert_eq!(take(), 0);
     }
 }
