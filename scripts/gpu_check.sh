@@ -12,7 +12,13 @@
 #      with the kernel maps built on the host (`SPARSEOCC_CUBE_MAPS=host`, the peer of the
 #      device-built tables; MAPS=0 skips it), the same with burn's direct image convolutions
 #      (`SPARSEOCC_CUBE_CONV2D=direct`, the peer of im2col + matmul; CONV2D=0 skips it), then the
-#      three models side by side, then (SCAN=1) the memory scan.
+#      three models side by side, then (SCAN=1) the memory scan;
+#   4. (TRAIN=0 skips) SparseOcc++ training steps at that setting on a synthetic SemanticKITTI-layout
+#      sequence: the median step time as shipped (the DCA sampling's `#[cube]` training op, the
+#      image convolutions' im2col op), with the DCA sampling as tensor ops in training
+#      (`SPARSEOCC_CUBE_DCA=cube-infer`, the peer; DCA=0 skips it) and with burn's image
+#      convolutions (`SPARSEOCC_CUBE_CONV2D=direct`; CONV2D=0 skips it), in train_steps.txt, the
+#      per-step logs beside it.
 # Kernel caches: cubecl's compiled-kernel and autotune caches (`SPARSEOCC_KERNEL_CACHE`) and the CUDA
 # driver's (`CUDA_CACHE_PATH`) live in OUT/kernel_cache/<first 16 hex of the binary's sha256>, so they
 # come back with the output; CACHE_FROM=<an earlier OUT> copies that folder in first (same binary:
@@ -34,6 +40,8 @@ T_TRACE=${T_TRACE:-180}
 T_BENCH=${T_BENCH:-150}
 T_ALL=${T_ALL:-150}
 T_SCAN=${T_SCAN:-120}
+T_TRAIN=${T_TRAIN:-180}
+TRAIN_STEPS=${TRAIN_STEPS:-8}
 mkdir -p "$OUT"
 BIN=${SPARSEOCC_BIN:-}
 if [ -z "$BIN" ]; then
@@ -82,6 +90,29 @@ fi
 if [ "${CONV2D:-1}" = 1 ]; then
   step bench_pp_direct_conv2d "$T_BENCH" env SPARSEOCC_CUBE_CONV2D=direct "$BIN" bench \
     --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_direct_conv2d.json"
+fi
+if [ "${TRAIN:-1}" = 1 ]; then
+  # Training steps at the setting on a synthetic SemanticKITTI-layout sequence (the config's image
+  # size, grid and model; forward with labels, the losses, backward, clipping, AdamW), every step
+  # logged; the median of the steps after the first two (kernel compilation) is printed. The run
+  # folders stay outside OUT (a checkpoint is 100+ MB); their logs are copied into it.
+  SYN=${TMPDIR:-/tmp}/sparseocc_gpu_check_synth
+  rm -rf "$SYN"
+  step synth_kitti 120 "$BIN" synth --preset kitti --sequences 00:4 --out "$SYN"
+  train_step() { # name, environment (VAR=value ...)
+    local name=$1 run=${TMPDIR:-/tmp}/sparseocc_gpu_check_$1
+    shift
+    rm -rf "$run"
+    step "$name" "$T_TRAIN" env "$@" "$BIN" train --config "$CFG" --data "$SYN" \
+      --out "$run" --steps "$TRAIN_STEPS" --sequences 00 --val-sequences "" --log-every 1
+    cp "$run/train_log.csv" "$OUT/${name}_log.csv" 2>/dev/null
+    awk -F, 'NR > 1 && $1 > 2 { print $5 }' "$run/train_log.csv" 2>/dev/null | sort -g |
+      awk -v n="$name" '{ v[NR] = $1 } END { if (NR) printf "%s: median step %.3f s over %d steps (steps 3+)\n", n, (NR % 2 ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2), NR }' |
+      tee -a "$OUT/train_steps.txt"
+  }
+  train_step train_pp
+  [ "${DCA:-1}" = 1 ] && train_step train_pp_dca_tensor_ops SPARSEOCC_CUBE_DCA=cube-infer
+  [ "${CONV2D:-1}" = 1 ] && train_step train_pp_direct_conv2d SPARSEOCC_CUBE_CONV2D=direct
 fi
 if [ "${ALL:-1}" = 1 ]; then
   step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \

@@ -167,9 +167,10 @@ fn rel_err(a: &[f32], b: &[f32]) -> f64 {
 /// Builds the maps of every kind of convolution (submanifold, regular, strided, transposed with
 /// output padding, dilated; each map and its transpose) deferred, on a dense scene and on a sparse
 /// one, and compares each gather table the backend builds on its device with the host's, entry
-/// for entry. Returns the entries that differ and the tables compared (0 where the backend has no
-/// device tables: the CPU build).
-fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize, usize)> {
+/// for entry, and the pair count read from that table (what profiling counts MACs with) with the
+/// host's. Returns the entries that differ, the counts that differ and the tables compared (0
+/// where the backend has no device tables: the CPU build).
+fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize, usize, usize)> {
     let dense = scene();
     let mut rnd = lcg(5);
     let mut sparse: Vec<[i32; 4]> = (0..3000)
@@ -209,7 +210,7 @@ fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize,
                 .with_padding([1, 0, 1]),
         ),
     ];
-    let (mut mismatches, mut tables) = (0, 0);
+    let (mut mismatches, mut bad_counts, mut tables) = (0, 0, 0);
     for (coords, shape, batch) in [(dense, [128, 128, 16], 1), (sparse, [300, 280, 24], 2)] {
         for (kind, geom) in kinds {
             let host_set = Arc::new(CoordSet::new(coords.clone(), shape, batch)?);
@@ -221,8 +222,11 @@ fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize,
                 (host.transposed(), deferred.transposed()),
             ] {
                 let Some(table) = B::device_gather_table(&d, dev) else {
-                    return Ok((0, 0));
+                    return Ok((0, 0, 0));
                 };
+                let count = B::device_pair_count(&d, dev)
+                    .context("a deferred map with a device table has a device pair count")?;
+                bad_counts += usize::from(count() != h.num_pairs());
                 if d.has_host_pairs() {
                     bail!("map_tables: the table of {kind:?} {geom:?} came from host pairs");
                 }
@@ -236,7 +240,7 @@ fn map_table_mismatches<B: SparseConvBackend>(dev: &B::Device) -> Result<(usize,
             }
         }
     }
-    Ok((mismatches, tables))
+    Ok((mismatches, bad_counts, tables))
 }
 
 fn to_vec<B: Backend, const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
@@ -288,13 +292,17 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     let device_set = Arc::new(CoordSet::new(coords, [128, 128, 16], 1)?);
     let mut results = Vec::new();
     let mut worst = 0f64;
-    let (mismatches, map_cases) = map_table_mismatches::<Train>(&dev)?;
+    let (mismatches, bad_counts, map_cases) = map_table_mismatches::<Train>(&dev)?;
     if map_cases > 0 {
         eprintln!(
-            "map_tables: {map_cases} gather tables built on the device, {mismatches} entries differ from the host's"
+            "map_tables: {map_cases} gather tables built on the device, {mismatches} entries and {bad_counts} pair counts differ from the host's"
         );
-        worst = worst.max(if mismatches == 0 { 0.0 } else { 1.0 });
-        results.push(serde_json::json!({"case": "map_tables", "tables": map_cases, "mismatches": mismatches}));
+        worst = worst.max(if mismatches + bad_counts == 0 {
+            0.0
+        } else {
+            1.0
+        });
+        results.push(serde_json::json!({"case": "map_tables", "tables": map_cases, "mismatches": mismatches, "pair_count_mismatches": bad_counts}));
     }
     // (name, map kind, geometry, transposed, C_in, C_out); 19 -> 37 channels leaves partial tiles
     // in the cubecl kernels (16 x 16).
@@ -493,6 +501,9 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         // ResNet's shortcut downsampling (layer2.0, layer3.0 of the tiny encoder).
         (16, 32, 32, 104, 1, 2),
         (32, 64, 16, 52, 1, 2),
+        // An unfolding of 1,152 x 30,720 values: two column blocks (`conv2d_cube::MAX_COLS_ELEMS`)
+        // in the im2col training op's forward and backward.
+        (128, 16, 160, 192, 3, 1),
     ] {
         let shape = Conv2dShape {
             cin,
@@ -670,22 +681,52 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     let e_loss = rel_err(&[loss_t], &[loss_r]);
     let errs = grad_errors(&step_t.grads, &step_r.grads);
     let (e_grad, worst_param) = worst_grad(&errs);
+    // Gradients beyond the tolerance that the reference's own rounding sensitivity explains (a
+    // ReLU input within rounding of its kink, see `KinkSensitivity`) are reported, not failed.
+    let sensitivity = if e_grad > args.tol {
+        KinkSensitivity::measure(&cpu_train, &batch_r, &step_r.grads)?
+    } else {
+        KinkSensitivity::default()
+    };
     let mut beyond_params = Vec::new();
-    for (name, e, max_ref) in errs.iter().filter(|(_, e, _)| *e > args.tol) {
-        eprintln!("  gradient of {name}: rel err {e:.2e} (largest reference value {max_ref:.3e})");
-        beyond_params
-            .push(serde_json::json!({"param": name, "rel_err": e, "max_abs_reference": max_ref}));
+    let mut judged = errs.clone();
+    for ((name, e, max_ref), j) in errs.iter().zip(&mut judged) {
+        if *e <= args.tol {
+            continue;
+        }
+        let sens = sensitivity.of(name);
+        let explained = KinkSensitivity::explains(*e, sens, args.tol);
+        eprintln!(
+            "  gradient of {name}: rel err {e:.2e} (largest reference value {max_ref:.3e}; the \
+             reference moves by {sens:.2e} under rounding-size weight perturbations: {})",
+            if explained {
+                "explained by a kink within rounding"
+            } else {
+                "not explained"
+            }
+        );
+        if explained {
+            j.1 = 0.0;
+        }
+        beyond_params.push(serde_json::json!({"param": name, "rel_err": e,
+            "max_abs_reference": max_ref, "reference_rounding_sensitivity": sens,
+            "explained_by_kink": explained}));
     }
+    let (e_judged, judged_param) = worst_grad(&judged);
     eprintln!(
         "SparseOcc++ training step: loss {loss_t:.6} (reference {loss_r:.6}, rel err {e_loss:.2e}), \
-         {} parameter gradients, worst rel err {e_grad:.2e} ({worst_param})",
-        grads_t.len()
+         {} parameter gradients, worst rel err {e_grad:.2e} ({worst_param}), worst not explained \
+         by a kink {e_judged:.2e} ({judged_param}; reference rounding sensitivity {:.2e}, {} \
+         perturbed reference steps)",
+        grads_t.len(),
+        sensitivity.of(&judged_param),
+        sensitivity.runs
     );
-    worst = worst.max(e_loss).max(e_grad);
+    worst = worst.max(e_loss).max(e_judged);
     // Where gradients disagree: each kind of loss term back-propagated alone, to find the
     // backward that differs (one more forward and backward per kind on each backend).
     let mut by_kind = Vec::new();
-    if e_grad > args.tol {
+    if e_judged > args.tol {
         let mut kinds: Vec<&str> = step_r.terms.iter().map(|(k, _)| term_kind(k)).collect();
         kinds.sort_unstable();
         kinds.dedup();
@@ -700,7 +741,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     // Where the image encoder's gradients disagree: its backward alone, cut in three (whole
     // encoder, backbone alone, neck alone), over the levels the model reads and over all levels.
     let mut encoder_cut_cases = Vec::new();
-    if errs
+    if judged
         .iter()
         .any(|(name, e, _)| name.starts_with("encoder.") && *e > args.tol)
     {
@@ -732,6 +773,8 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     results.push(
         serde_json::json!({"case": "sparseocc++_train_step", "loss": e_loss,
         "grad_params": grads_t.len(), "grad": e_grad, "grad_worst_param": worst_param,
+        "grad_not_explained_by_kink": e_judged, "grad_not_explained_worst_param": judged_param,
+        "rounding_perturbations": sensitivity.runs,
         "grads_beyond_tolerance": beyond_params, "grads_by_loss_kind": by_kind,
         "encoder_cuts": encoder_cut_cases}),
     );
@@ -1122,6 +1165,126 @@ fn grad_errors(t: &ParamGrads, r: &ParamGrads) -> Vec<(String, f64, f32)> {
         .collect()
 }
 
+/// How much the reference's own gradients move when its weights move by a rounding-size amount:
+/// the measure that tells a ReLU on its kink from a wrong backward.
+///
+/// The device computes the forward in f32 and the reference in f64; where a ReLU's input lies
+/// within the f32 rounding of zero (measured on lavapipe, 2026-12-06: `+5.1e-7` in the reference,
+/// `-6.6e-7` on the device, one hidden unit of the DCA block's FFN), the two sides take different
+/// branches and the gradients of the layers around that unit differ by a whole row's contribution,
+/// however right both backward passes are. An elementwise comparison cannot tell that from an
+/// error. So where a gradient is beyond the tolerance, the reference's step is rerun
+/// [`Self::RUNS`] times with every weight multiplied by `1 ± 2^-20` (a seeded sign per value:
+/// rounding-size, like the f32 forward's own error); a gradient that moves under those
+/// perturbations by at least half the device's difference sits on a kink at this step. A wrong
+/// backward moves nothing in the reference and stays a failure, as does any difference beyond
+/// [`Self::CEILING`] times the tolerance.
+#[derive(Default)]
+struct KinkSensitivity {
+    /// Per parameter: the largest rel err of a perturbed reference gradient against the
+    /// reference's.
+    by_param: std::collections::HashMap<String, f64>,
+    /// The perturbed reference steps run.
+    runs: usize,
+}
+
+impl KinkSensitivity {
+    /// Perturbed reference steps: each flips a kink within rounding with about even odds (a
+    /// reference step of the check's model takes about a second on the CPU).
+    const RUNS: usize = 6;
+    /// The relative size of the weight perturbation (`2^-20`, about 8 f32 ulps).
+    const DELTA: f64 = 1.0 / 1_048_576.0;
+    /// Differences explained by a kink still fail beyond this many times the tolerance.
+    const CEILING: f64 = 10.0;
+
+    fn measure<Bk>(
+        model: &occ_model::OccNet<Bk>,
+        batch: &occ_model::Batch<Bk>,
+        reference: &ParamGrads,
+    ) -> Result<Self>
+    where
+        Bk: burn::tensor::backend::AutodiffBackend + occ_model::kernels::ModelBackend,
+    {
+        let mut out = Self::default();
+        for run in 0..Self::RUNS {
+            let t0 = Instant::now();
+            let mut perturb = SignPerturbation {
+                delta: Self::DELTA,
+                rnd: lcg(100 + run as u64),
+            };
+            let perturbed = model.clone().map(&mut perturb);
+            let step = train_grads(&perturbed, batch, None)?;
+            for (name, e, _) in grad_errors(&step.grads, reference) {
+                let s = out.by_param.entry(name).or_insert(0.0);
+                *s = s.max(e);
+            }
+            out.runs += 1;
+            eprintln!(
+                "  reference step with weights x (1 ± 2^-20), seed {}: {:.1} s",
+                100 + run,
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        Ok(out)
+    }
+
+    /// The reference's sensitivity for parameter `name` (0 when not measured).
+    fn of(&self, name: &str) -> f64 {
+        self.by_param.get(name).copied().unwrap_or(0.0)
+    }
+
+    /// Whether a device difference `e` is what a kink within rounding makes, for a reference
+    /// sensitivity `sens`.
+    fn explains(e: f64, sens: f64, tol: f64) -> bool {
+        e <= Self::CEILING * tol && 2.0 * sens >= e
+    }
+}
+
+/// Multiplies every float parameter by `1 + delta` or `1 - delta` (a seeded sign per value),
+/// keeping which parameters are trained.
+struct SignPerturbation<R: FnMut() -> f32> {
+    delta: f64,
+    rnd: R,
+}
+
+impl<Bk, R> burn::module::ModuleMapper<Bk> for SignPerturbation<R>
+where
+    Bk: burn::tensor::backend::AutodiffBackend,
+    R: FnMut() -> f32,
+{
+    fn map_float<const D: usize>(
+        &mut self,
+        param: burn::module::Param<Tensor<Bk, D>>,
+    ) -> burn::module::Param<Tensor<Bk, D>> {
+        param.map(|t| {
+            let trained = t.is_require_grad();
+            let inner = t.inner();
+            let shape = inner.shape();
+            let n = shape.num_elements();
+            let factors: Vec<f64> = (0..n)
+                .map(|_| {
+                    if (self.rnd)() >= 0.0 {
+                        1.0 + self.delta
+                    } else {
+                        1.0 - self.delta
+                    }
+                })
+                .collect();
+            let factors = Tensor::<Bk::InnerBackend, 1>::from_data(
+                TensorData::new(factors, [n]),
+                &inner.device(),
+            )
+            .reshape(shape);
+            let t = Tensor::from_inner(inner * factors);
+            if trained {
+                t.require_grad()
+            } else {
+                t
+            }
+        })
+    }
+}
+
 /// The worst of [`grad_errors`] and its parameter.
 fn worst_grad(errs: &[(String, f64, f32)]) -> (f64, String) {
     errs.iter()
@@ -1396,7 +1559,7 @@ struct Conv2dShape {
 }
 
 /// `conv2d` with bias, and the gradients of `Σ y ⊙ r` with respect to input, weight and bias.
-fn conv2d_run<Bk: burn::tensor::backend::AutodiffBackend>(
+fn conv2d_run<Bk: burn::tensor::backend::AutodiffBackend + occ_model::kernels::ModelBackend>(
     c: Conv2dShape,
     inputs: [&[f32]; 4],
     ours: bool,
@@ -1415,14 +1578,15 @@ fn conv2d_run<Bk: burn::tensor::backend::AutodiffBackend>(
     let bt = t::<Bk, 1>(b, [c.cout], dev).require_grad();
     let pad = c.k / 2;
     let y = if ours {
-        // The model's path on the GPU backends (`conv_bn_portable` without BN).
+        // The model's path in training (`conv_bn` without BN: on the cubecl backends im2col +
+        // matrix product with a col2im backward, `ModelBackend::conv2d_autodiff`).
         let mut conv = burn::nn::conv::Conv2dConfig::new([c.cin, c.cout], [c.k, c.k])
             .with_stride([c.stride; 2])
             .with_padding(burn::nn::PaddingConfig2d::Explicit(pad, pad, pad, pad))
             .init::<Bk>(dev);
         conv.weight = burn::module::Param::from_tensor(wt.clone());
         conv.bias = Some(burn::module::Param::from_tensor(bt.clone()));
-        occ_model::kernels::conv2d_host::conv_forward_portable(&conv, xt.clone())
+        occ_model::kernels::conv2d_host::conv_bn(&conv, None, xt.clone(), false)
     } else {
         burn::tensor::module::conv2d(
             xt.clone(),
@@ -1444,7 +1608,7 @@ fn conv2d_run<Bk: burn::tensor::backend::AutodiffBackend>(
 }
 
 /// An image convolution's forward and gradients on the backend under test, computed as the image
-/// encoder computes it there (`conv_forward_portable`), against the CPU reference (burn's own
+/// encoder computes it there in training (`conv_bn`), against the CPU reference (burn's own
 /// conv2d and its backward); burn's own conv2d on the backend under test is reported beside it
 /// (`burn_*`, not counted: the model avoids it where it is wrong, strided 1x1 convolutions).
 fn conv2d_case(

@@ -42,6 +42,10 @@ pub struct TrainArgs {
     /// workers share the machine's threads.
     #[arg(long)]
     pub devices: Option<usize>,
+    /// Override how often a step is logged to train_log.csv (`train.log_every`; 1: every step,
+    /// which step timings need).
+    #[arg(long)]
+    pub log_every: Option<usize>,
 }
 
 /// Resolves the run configuration from the arguments.
@@ -82,6 +86,9 @@ pub fn resolve_config(args: &TrainArgs) -> Result<RunConfig> {
     }
     if let Some(n) = args.devices {
         cfg.train.devices = n;
+    }
+    if let Some(n) = args.log_every {
+        cfg.train.log_every = n;
     }
     cfg.validate().map_err(anyhow::Error::msg)?;
     if cfg.data.train_sequences.is_empty() {

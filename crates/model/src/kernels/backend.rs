@@ -7,7 +7,7 @@
 //!
 //! | kernel | portable default | `NdArray<T>` | `Autodiff<NdArray<T>, C>` |
 //! |---|---|---|---|
-//! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` (on the cubecl backends in inference: `conv2d_cube`, im2col + matmul) | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
+//! | [`ModelBackend::conv2d_bn`] | burn's `Conv2d`, `BatchNorm`, `relu` (on the cubecl backends `conv2d_cube`: im2col + matmul, in training with a col2im backward) | [`conv_bn_host`] (BN folded, im2col + GEMM) | [`conv_autodiff`] (im2col + GEMM, GEMM backward), then burn's `BatchNorm`, `relu` |
 //! | [`ModelBackend::dca_sample`] | [`dca::sample_tensor_ops`] (`grid_sample`) | host loop | host loop as one autodiff op |
 //! | [`ModelBackend::row_linear`], [`ModelBackend::row_layer_norm`], [`ModelBackend::row_softmax`] | burn's `Linear` (+ `relu`), `LayerNorm`, `softmax` | row-wise host loops (`rows_host`: bias and ReLU fused into the GEMM output, one pass per row) | burn's (portable) |
 //!
@@ -228,10 +228,11 @@ impl<B: ModelBackend, C: CheckpointStrategy> ModelBackend for Autodiff<B, C> {
     }
 }
 
-/// The cubecl backends: the image-side convolutions in inference as im2col + matrix product
-/// ([`crate::kernels::conv2d_cube`]; `SPARSEOCC_CUBE_CONV2D=direct` keeps burn's), the DCA
-/// sampling as `#[cube]` kernels in inference (and, with `SPARSEOCC_CUBE_DCA=cube-train`, in
-/// training; see [`crate::kernels::dca_cube::CubeDca`]), the rest portable.
+/// The cubecl backends: the image-side convolutions as im2col + matrix product, in training with
+/// a col2im backward ([`crate::kernels::conv2d_cube`]; `SPARSEOCC_CUBE_CONV2D=direct` keeps
+/// burn's), the DCA
+/// sampling as `#[cube]` kernels in inference and training (see
+/// [`crate::kernels::dca_cube::CubeDca`]), the rest portable.
 #[cfg(feature = "cube")]
 macro_rules! cube_model_backend {
     ($runtime:ty, $f:ty, $i:ty, $b:ty) => {
@@ -248,6 +249,16 @@ macro_rules! cube_model_backend {
                 }
             }
             conv_bn_portable(conv, bn, x, apply_relu)
+        }
+
+        fn conv2d_autodiff<C: CheckpointStrategy>(
+            conv: &Conv2d<Autodiff<Self, C>>,
+            x: Tensor<Autodiff<Self, C>, 4>,
+        ) -> Tensor<Autodiff<Self, C>, 4> {
+            match crate::kernels::conv2d_cube::conv2d_train::<$runtime, $f, $i, $b, C>(conv, x) {
+                Ok(y) => y,
+                Err(x) => conv_forward_portable(conv, x),
+            }
         }
 
         fn dca_sample(s: DcaSample<'_, Self>) -> Tensor<Self, 2> {

@@ -744,11 +744,11 @@ type FusedTensor<R> = FusionTensor<FusionCubeRuntime<R>>;
 occ_sparse::env_switch! {
     /// Which DCA sampling the cubecl backends run.
     pub enum CubeDca: "SPARSEOCC_CUBE_DCA" {
-        /// `cube` (the default): these kernels in inference; training through the portable
-        /// tensor-op composition ([`crate::kernels::dca::sample_tensor_ops`]).
-        Inference = "cube",
-        /// `cube-train`: these kernels in inference and training (forward and backward).
-        InferenceAndTraining = "cube-train",
+        /// `cube` (the default): these kernels in inference and training (forward and backward).
+        InferenceAndTraining = "cube",
+        /// `cube-infer`: these kernels in inference; training through the portable tensor-op
+        /// composition ([`crate::kernels::dca::sample_tensor_ops`]).
+        Inference = "cube-infer",
         /// `tensor-ops`: the portable composition everywhere.
         TensorOps = "tensor-ops",
     }
