@@ -649,7 +649,7 @@ where
 }
 
 /// [`register_cube_op`] with one output of `shape` in the first input's dtype.
-fn register_one<R, F, I, BT>(
+pub fn register_one<R, F, I, BT>(
     name: &'static str,
     inputs: Vec<FusionTensor<FusionCubeRuntime<R>>>,
     shape: Shape,

@@ -38,8 +38,7 @@ use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElement};
 use burn_fusion::{Fusion, FusionTensor};
 use cubecl::{calculate_cube_count_elemwise, CubeDim};
-use occ_sparse::cube::{address_type_of, inputs_of, register_cube_op};
-use std::sync::Arc;
+use occ_sparse::cube::{address_type_of, inputs_of, register_one};
 
 mod kernel {
     use cubecl::prelude::*;
@@ -307,17 +306,12 @@ impl Unfold {
         I: IntElement,
         BT: BoolElement,
     {
-        let cols = register_cube_op::<R, F, I, BT>(
-            "occ_model::im2col",
-            vec![x.clone()],
-            &[(Shape::new([self.rows(), self.n * lc]), x.dtype)],
-            Arc::new(move |t| {
+        let shape = Shape::new([self.rows(), self.n * lc]);
+        let cols =
+            register_one::<R, F, I, BT>("occ_model::im2col", vec![x.clone()], shape, move |t| {
                 let [x] = inputs_of(t);
-                vec![self.launch(x, l0, lc)]
-            }),
-        )
-        .pop()
-        .expect("one output");
+                self.launch(x, l0, lc)
+            });
         Tensor::from_primitive(TensorPrimitive::Float(cols))
     }
 
@@ -334,19 +328,12 @@ impl Unfold {
         I: IntElement,
         BT: BoolElement,
     {
-        let dcols = dcols.into_primitive().tensor();
-        let g = self.g;
-        let dx = register_cube_op::<R, F, I, BT>(
-            "occ_model::col2im",
-            vec![dcols.clone()],
-            &[(Shape::new([self.n, self.c, g.h, g.w]), dcols.dtype)],
-            Arc::new(move |t| {
-                let [dcols] = inputs_of(t);
-                vec![self.launch_col2im(dcols, l0, lc)]
-            }),
-        )
-        .pop()
-        .expect("one output");
+        let shape = Shape::new([self.n, self.c, self.g.h, self.g.w]);
+        let dcols = vec![dcols.into_primitive().tensor()];
+        let dx = register_one::<R, F, I, BT>("occ_model::col2im", dcols, shape, move |t| {
+            let [dcols] = inputs_of(t);
+            self.launch_col2im(dcols, l0, lc)
+        });
         Tensor::from_primitive(TensorPrimitive::Float(dx))
     }
 
