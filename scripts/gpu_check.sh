@@ -13,8 +13,8 @@
 #      device-built tables; MAPS=0 skips it), the same with burn's direct image convolutions
 #      (`SPARSEOCC_CUBE_CONV2D=direct`, the peer of im2col + matmul; CONV2D=0 skips it), then the
 #      three models side by side, then (SCAN=1) the memory scan;
-#   4. (TRAIN=0 skips) SparseOcc++ training steps at that setting on a synthetic SemanticKITTI-layout
-#      sequence: the median step time as shipped (the DCA sampling's `#[cube]` training op, the
+#   4. (TRAIN=0 skips) SparseOcc++ training steps at that setting (batch 1, the paper's frames per
+#      GPU) on a synthetic SemanticKITTI-layout sequence: the median step time as shipped (the DCA sampling's `#[cube]` training op, the
 #      image convolutions' im2col op), with the DCA sampling as tensor ops in training
 #      (`SPARSEOCC_CUBE_DCA=cube-infer`, the peer; DCA=0 skips it) and with burn's image
 #      convolutions (`SPARSEOCC_CUBE_CONV2D=direct`; CONV2D=0 skips it), in train_steps.txt, the
@@ -96,14 +96,17 @@ if [ "${TRAIN:-1}" = 1 ]; then
   # size, grid and model; forward with labels, the losses, backward, clipping, AdamW), every step
   # logged; the median of the steps after the first two (kernel compilation) is printed. The run
   # folders stay outside OUT (a checkpoint is 100+ MB); their logs are copied into it.
+  # Batch 1: the paper trains with one frame per GPU (8 GPUs, batch 8).
   SYN=${TMPDIR:-/tmp}/sparseocc_gpu_check_synth
+  TRAIN_CFG="$OUT/train_config.toml"
+  sed 's/^batch_size *=.*/batch_size = 1/' "$CFG" >"$TRAIN_CFG"
   rm -rf "$SYN"
   step synth_kitti 120 "$BIN" synth --preset kitti --sequences 00:4 --out "$SYN"
   train_step() { # name, environment (VAR=value ...)
     local name=$1 run=${TMPDIR:-/tmp}/sparseocc_gpu_check_$1
     shift
     rm -rf "$run"
-    step "$name" "$T_TRAIN" env "$@" "$BIN" train --config "$CFG" --data "$SYN" \
+    step "$name" "$T_TRAIN" env "$@" "$BIN" train --config "$TRAIN_CFG" --data "$SYN" \
       --out "$run" --steps "$TRAIN_STEPS" --sequences 00 --val-sequences "" --log-every 1
     cp "$run/train_log.csv" "$OUT/${name}_log.csv" 2>/dev/null
     awk -F, 'NR > 1 && $1 > 2 { print $5 }' "$run/train_log.csv" 2>/dev/null | sort -g |
