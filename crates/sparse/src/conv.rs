@@ -183,7 +183,7 @@ pub fn sparse_conv3d<B: SparseConvBackend>(
         // A map without host pairs is counted from its device table, read after the next sync:
         // counting never builds host pairs the computation does not need.
         let macs_per_pair = (cin * cout) as u64;
-        match B::device_pair_count(&map, &input.device()).filter(|_| !map.has_host_pairs()) {
+        match B::device_pair_count(&map, &input.device()) {
             Some(count) => {
                 crate::flops::add_later(Box::new(move || count() as u64 * macs_per_pair))
             }

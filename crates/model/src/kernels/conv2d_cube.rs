@@ -37,7 +37,8 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{BoolElement, CubeBackend, CubeRuntime, FloatElement, IntElement};
 use burn_fusion::{Fusion, FusionTensor};
-use cubecl::{calculate_cube_count_elemwise, CubeDim};
+use cubecl::prelude::AddressType;
+use cubecl::{calculate_cube_count_elemwise, CubeCount, CubeDim};
 use occ_sparse::cube::{address_type_of, inputs_of, register_one};
 
 mod kernel {
@@ -166,6 +167,25 @@ occ_sparse::env_switch! {
 
 /// A fused cubecl backend.
 type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
+
+/// An output of `shape` in `input`'s dtype on its device, and the launch of one unit per output
+/// value (cube count, cube size, address type over both tensors).
+fn one_unit_per_value<R: CubeRuntime, const D: usize>(
+    input: &CubeTensor<R>,
+    shape: [usize; D],
+) -> (CubeTensor<R>, CubeCount, CubeDim, AddressType) {
+    let units = shape.iter().product();
+    let out = empty_device_dtype(
+        input.client.clone(),
+        input.device.clone(),
+        Shape::new(shape),
+        input.dtype,
+    );
+    let dim = CubeDim::new(&input.client, units);
+    let count = calculate_cube_count_elemwise(&input.client, units, dim);
+    let address = address_type_of(&[input, &out]);
+    (out, count, dim, address)
+}
 type FusedTensor<R> = FusionTensor<FusionCubeRuntime<R>>;
 
 /// One unfolding's geometry on the host.
@@ -222,18 +242,8 @@ impl Unfold {
 
     fn launch<R: CubeRuntime>(self, x: CubeTensor<R>, l0: usize, lc: usize) -> CubeTensor<R> {
         let x = into_contiguous(x);
-        let rows = self.rows();
-        let cols = empty_device_dtype(
-            x.client.clone(),
-            x.device.clone(),
-            Shape::new([rows, self.n * lc]),
-            x.dtype,
-        );
-        let units = self.n * rows * lc;
+        let (cols, count, dim, address) = one_unit_per_value(&x, [self.rows(), self.n * lc]);
         let client = x.client.clone();
-        let dim = CubeDim::new(&client, units);
-        let count = calculate_cube_count_elemwise(&client, units, dim);
-        let address = address_type_of(&[&x, &cols]);
         let dims = self.dims(l0, lc);
         let dtype = x.dtype;
         // SAFETY: an input value is read only at `(n, c, iy, ix)` inside the image (checked), and
@@ -262,18 +272,9 @@ impl Unfold {
         lc: usize,
     ) -> CubeTensor<R> {
         let dcols = into_contiguous(dcols);
-        let g = self.g;
-        let dx = empty_device_dtype(
-            dcols.client.clone(),
-            dcols.device.clone(),
-            Shape::new([self.n, self.c, g.h, g.w]),
-            dcols.dtype,
-        );
-        let units = self.n * self.c * g.h * g.w;
+        let shape = [self.n, self.c, self.g.h, self.g.w];
+        let (dx, count, dim, address) = one_unit_per_value(&dcols, shape);
         let client = dcols.client.clone();
-        let dim = CubeDim::new(&client, units);
-        let count = calculate_cube_count_elemwise(&client, units, dim);
-        let address = address_type_of(&[&dcols, &dx]);
         let dims = self.dims(l0, lc);
         let dtype = dcols.dtype;
         // SAFETY: `dcols` is read at `row < C·k_h·k_w`, `n < N`, `p - l0 < lc` (checked), inside
