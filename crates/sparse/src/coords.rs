@@ -159,6 +159,8 @@ pub struct CoordSet {
     id: u64,
     pub(crate) cache: Mutex<HashMap<KernelMapKey, ConvCacheEntry>>,
     pub(crate) parents: Mutex<Vec<crate::kernel_map::ParentLink>>,
+    /// The sites uploaded to compute devices ([`crate::kernel_map::Sites::device_table`]).
+    device_sites: Arc<crate::kernel_map::DeviceTables>,
 }
 
 impl std::fmt::Debug for CoordSet {
@@ -259,6 +261,7 @@ impl CoordSet {
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             cache: Mutex::new(HashMap::new()),
             parents: Mutex::new(Vec::new()),
+            device_sites: Arc::default(),
         }
     }
 
@@ -269,6 +272,10 @@ impl CoordSet {
     /// The coordinates, shared (no copy).
     pub(crate) fn shared_coords(&self) -> Arc<Vec<Coord>> {
         self.coords.clone()
+    }
+    /// The set's copies on compute devices, shared (see [`crate::kernel_map::Sites`]).
+    pub(crate) fn device_sites(&self) -> Arc<crate::kernel_map::DeviceTables> {
+        self.device_sites.clone()
     }
     /// Number of active sites.
     pub fn len(&self) -> usize {

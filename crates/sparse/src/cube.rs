@@ -5,7 +5,7 @@
 //! (lavapipe when there is no GPU: docs/gpu.md).
 
 use crate::backend::{index_tensor, weight_from_matrix, weight_matrix};
-use crate::kernel_map::{KernelMap, MapRule, MapSource, Sites};
+use crate::kernel_map::{ConvGeometry, KernelMap, MapRule, MapSource, Sites};
 use crate::rows::RowPlan;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
@@ -977,18 +977,45 @@ fn grid_cells(sites: &Sites) -> Option<usize> {
         .try_fold(sites.batch, |acc, &d| acc.checked_mul(d))
 }
 
-/// Cells of the dense grid of a map's input sites, if a device can build the map's table: both
-/// sides non-empty, both grids within [`MAX_DEVICE_GRID`] cells (so linear indices fit the int
-/// type).
-fn device_grid_cells(source: &MapSource) -> Option<usize> {
-    let cells = grid_cells(&source.inputs)?;
-    let nonempty = !source.inputs.coords.is_empty() && !source.outputs.coords.is_empty();
-    let fits = cells <= MAX_DEVICE_GRID && grid_cells(&source.outputs)? <= MAX_DEVICE_GRID;
-    (nonempty && fits).then_some(cells)
+/// What [`build_gather_table`] needs of a map besides its sites: host values only, so that the
+/// device op that builds the table holds neither the coordinate lists nor the sites' device copies
+/// (a device tensor dropped inside a device op would re-enter the device's queue).
+#[derive(Clone, Copy, Debug)]
+struct TablePlan {
+    rule: MapRule,
+    geometry: ConvGeometry,
+    n_in: usize,
+    n_out: usize,
+    in_shape: [usize; 3],
+    out_shape: [usize; 3],
+    batch: usize,
+    /// Cells of the dense grid of the input sites.
+    cells: usize,
+}
+
+impl TablePlan {
+    /// The plan of a map, if a device can build its table: both sides non-empty, both grids within
+    /// [`MAX_DEVICE_GRID`] cells (so linear indices fit the int type).
+    fn of(source: &MapSource) -> Option<Self> {
+        let cells = grid_cells(&source.inputs)?;
+        let nonempty = !source.inputs.coords.is_empty() && !source.outputs.coords.is_empty();
+        let fits = cells <= MAX_DEVICE_GRID && grid_cells(&source.outputs)? <= MAX_DEVICE_GRID;
+        (nonempty && fits).then_some(Self {
+            rule: source.rule,
+            geometry: source.geometry,
+            n_in: source.inputs.coords.len(),
+            n_out: source.outputs.coords.len(),
+            in_shape: source.inputs.shape,
+            out_shape: source.outputs.shape,
+            batch: source.inputs.batch,
+            cells,
+        })
+    }
 }
 
 /// Builds a kernel map's gather table on the device from its sites (crate-private: the cell
-/// indices must come from a [`MapSource`], whose sites lie on their grids): the input sites' rows are
+/// indices must come from a [`MapSource`], whose sites lie on their grids, and `plan` from the same
+/// source): the input sites' rows are
 /// written into a dense grid of their cells (spconv 1.x's dense index; a bounded voxel grid needs
 /// no hash), then every (output row, offset) reads the cell its rule reaches. Integer work, no
 /// atomics: the table equals [`KernelMap::gather_table`] entry for entry.
@@ -996,20 +1023,15 @@ fn device_grid_cells(source: &MapSource) -> Option<usize> {
 /// # Shapes
 /// - inputs: `[n_in]`, outputs: `[n_out]` (each site's linear index in its grid, the int dtype)
 ///   -> `[n_out · K]`
-pub(crate) fn build_gather_table<R: CubeRuntime>(
+fn build_gather_table<R: CubeRuntime>(
     inputs: CubeTensor<R>,
     outputs: CubeTensor<R>,
-    source: &MapSource,
+    plan: &TablePlan,
 ) -> CubeTensor<R> {
     let inputs = into_contiguous(inputs);
     let outputs = into_contiguous(outputs);
-    let g = &source.geometry;
-    let (n_in, n_out, kv) = (
-        source.inputs.coords.len(),
-        source.outputs.coords.len(),
-        g.volume(),
-    );
-    let cells = device_grid_cells(source).expect("the caller checked the grid");
+    let g = &plan.geometry;
+    let (n_in, n_out, kv, cells) = (plan.n_in, plan.n_out, g.volume(), plan.cells);
     let client = inputs.client.clone();
     let dtype = inputs.dtype;
     let grid = full_device_dtype(
@@ -1025,8 +1047,8 @@ pub(crate) fn build_gather_table<R: CubeRuntime>(
         Shape::new([n_out * kv]),
         dtype,
     );
-    let [gx, gy, gz] = source.inputs.shape;
-    let [ox, oy, oz] = source.outputs.shape;
+    let [gx, gy, gz] = plan.in_shape;
+    let [ox, oy, oz] = plan.out_shape;
     let dims = || {
         kernel::MapDimsLaunch::new(
             g.kernel[1],
@@ -1044,7 +1066,7 @@ pub(crate) fn build_gather_table<R: CubeRuntime>(
             gx,
             gy,
             gz,
-            source.inputs.batch,
+            plan.batch,
             ox,
             oy,
             oz,
@@ -1083,27 +1105,37 @@ pub(crate) fn build_gather_table<R: CubeRuntime>(
             grid.into_tensor_arg(),
             table.clone().into_tensor_arg(),
             dims(),
-            source.rule == MapRule::Forward,
+            plan.rule == MapRule::Forward,
             dtype.into(),
         )
     };
     table
 }
 
-/// The sites of one side of a map as an int tensor of their linear indices `[n]` (4 bytes a
-/// site to upload).
-fn sites_tensor<B: Backend>(sites: &Sites, device: &B::Device) -> BurnTensor<B, 1, Int> {
-    let [sx, sy, sz] = sites.shape;
-    // Valid sites lie on their grid, whose cells fit in `u32` (`device_grid_cells`).
-    let cells: Vec<u32> = sites
-        .coords
-        .iter()
-        .map(|c| {
-            (((c[0] as usize * sx + c[1] as usize) * sy + c[2] as usize) * sz + c[3] as usize)
-                as u32
-        })
-        .collect();
-    index_tensor::<B>(&cells, device)
+/// The sites of one side of a map as an int tensor of their linear indices `[n]` on `device`
+/// (4 bytes a site to upload), once per coordinate set and device ([`Sites::device_table`]): the
+/// maps built on one set share the upload.
+fn sites_tensor<B: Backend>(sites: &Sites, device: &B::Device) -> BurnTensor<B, 1, Int>
+where
+    B::Device: Send + Sync,
+{
+    let (_, t) = sites.device_table::<(B::Device, BurnTensor<B, 1, Int>)>(
+        |(d, _)| d == device,
+        || {
+            let [sx, sy, sz] = sites.shape;
+            // Valid sites lie on their grid, whose cells fit in `u32` (`TablePlan::of`).
+            let cells: Vec<u32> = sites
+                .coords
+                .iter()
+                .map(|c| {
+                    (((c[0] as usize * sx + c[1] as usize) * sy + c[2] as usize) * sz
+                        + c[3] as usize) as u32
+                })
+                .collect();
+            (device.clone(), index_tensor::<B>(&cells, device))
+        },
+    );
+    t
 }
 
 /// The map's gather table on `device` as an int tensor, once per map and device
@@ -1122,7 +1154,8 @@ where
     type Fused<R, F, I, BT> = Fusion<CubeBackend<R, F, I, BT>>;
     let on_device = map
         .source()
-        .filter(|s| !map.has_host_pairs() && device_grid_cells(s).is_some());
+        .filter(|_| !map.has_host_pairs())
+        .and_then(|s| Some((s, TablePlan::of(s)?)));
     if on_device.is_none() && map.gather_table().is_none() {
         return None;
     }
@@ -1130,18 +1163,18 @@ where
         |(d, _)| d == device,
         || {
             let table = match on_device {
-                Some(source) => {
+                Some((source, plan)) => {
                     let inputs = sites_tensor::<Fused<R, F, I, BT>>(&source.inputs, device);
                     let outputs = sites_tensor::<Fused<R, F, I, BT>>(&source.outputs, device);
                     let shape = Shape::new([map.n_out() * map.kernel_volume()]);
-                    let source = source.clone();
+                    // The op keeps the plan only (host values; see `TablePlan`).
                     let t = register_one::<R, F, I, BT>(
                         "occ_sparse::build_gather_table",
                         vec![inputs.into_primitive(), outputs.into_primitive()],
                         shape,
                         move |t| {
                             let [inputs, outputs] = inputs_of(t);
-                            build_gather_table(inputs, outputs, &source)
+                            build_gather_table(inputs, outputs, &plan)
                         },
                     );
                     BurnTensor::from_primitive(t)

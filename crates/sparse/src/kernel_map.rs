@@ -198,6 +198,8 @@ pub struct Sites {
     pub(crate) shape: [usize; 3],
     /// Batch size.
     pub(crate) batch: usize,
+    /// The sites on compute devices, shared with the set and every map built on it.
+    pub(crate) device: Arc<DeviceTables>,
 }
 
 impl Sites {
@@ -214,11 +216,25 @@ impl Sites {
         self.batch
     }
 
+    /// The sites uploaded to one compute device: the first cached value of type `T` that
+    /// `matches` accepts, or else the one `make` builds, kept with the set they come from, so
+    /// that the maps of one set (a level's submanifold map, the strided map into it and its
+    /// transpose) upload its sites once. Any backend type fits, as for
+    /// [`KernelMap::device_table`].
+    pub fn device_table<T: Any + Send + Sync + Clone>(
+        &self,
+        matches: impl Fn(&T) -> bool,
+        make: impl FnOnce() -> T,
+    ) -> T {
+        self.device.get_or_make(matches, make)
+    }
+
     fn of(set: &CoordSet) -> Self {
         Self {
             coords: set.shared_coords(),
             shape: set.spatial_shape(),
             batch: set.batch_size(),
+            device: set.device_sites(),
         }
     }
 }
@@ -327,10 +343,36 @@ impl MapSource {
     }
 }
 
-/// Copies of a map's tables on compute devices (see [`KernelMap::device_table`]), type-erased so
-/// that the map stays independent of any backend.
+/// Copies of a map's tables, or of a set's sites, on compute devices (see
+/// [`KernelMap::device_table`], [`Sites::device_table`]), type-erased so that the map and the set
+/// stay independent of any backend.
 #[derive(Default)]
-struct DeviceTables(Mutex<Vec<Box<dyn Any + Send + Sync>>>);
+pub(crate) struct DeviceTables(Mutex<Vec<Box<dyn Any + Send + Sync>>>);
+
+impl DeviceTables {
+    /// The first cached value of type `T` that `matches` accepts, or else the one `make` builds,
+    /// which is kept.
+    fn get_or_make<T: Any + Send + Sync + Clone>(
+        &self,
+        matches: impl Fn(&T) -> bool,
+        make: impl FnOnce() -> T,
+    ) -> T {
+        let mut tables = self
+            .0
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some(t) = tables
+            .iter()
+            .filter_map(|b| b.downcast_ref::<T>())
+            .find(|t| matches(t))
+        {
+            return t.clone();
+        }
+        let t = make();
+        tables.push(Box::new(t.clone()));
+        t
+    }
+}
 
 impl std::fmt::Debug for DeviceTables {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -509,21 +551,7 @@ impl KernelMap {
         matches: impl Fn(&T) -> bool,
         make: impl FnOnce() -> T,
     ) -> T {
-        let mut tables = self
-            .device_tables
-            .0
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        if let Some(t) = tables
-            .iter()
-            .filter_map(|b| b.downcast_ref::<T>())
-            .find(|t| matches(t))
-        {
-            return t.clone();
-        }
-        let t = make();
-        tables.push(Box::new(t.clone()));
-        t
+        self.device_tables.get_or_make(matches, make)
     }
 
     /// The pairs grouped by output row, in ascending kernel offset within a row (a counting sort
@@ -1462,5 +1490,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The maps built on one set share its device copies: a submanifold map on it, the strided
+    /// map out of it and that map's transpose see one upload of its sites, per device; another set
+    /// with the same coordinates has its own.
+    #[test]
+    fn maps_of_one_set_share_its_device_sites() {
+        let set = Arc::new(random_set(7, [16, 16, 8], 1, 200, false));
+        let sub = conv_map_deferred(&set, MapKind::Submanifold, ConvGeometry::new([3, 3, 3]))
+            .unwrap()
+            .1;
+        let g = ConvGeometry::new([3, 3, 3])
+            .with_stride([2, 2, 2])
+            .with_padding([1, 1, 1]);
+        let (down_set, down) = conv_map_deferred(&set, MapKind::Regular, g).unwrap();
+        let up = down.transposed();
+        let uploads = std::sync::atomic::AtomicUsize::new(0);
+        // A "device copy": (device id, row count), counting the uploads.
+        let upload = |sites: &Sites, device: u8| {
+            sites.device_table::<(u8, usize)>(
+                |(d, _)| *d == device,
+                || {
+                    uploads.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    (device, sites.coords().len())
+                },
+            )
+        };
+        let source = |m: &KernelMap| m.source().expect("deferred").clone();
+        let n = set.len();
+        assert_eq!(upload(&source(&sub).inputs, 0), (0, n));
+        assert_eq!(upload(&source(&sub).outputs, 0), (0, n));
+        assert_eq!(upload(&source(&down).inputs, 0), (0, n));
+        assert_eq!(upload(&source(&up).outputs, 0), (0, n));
+        assert_eq!(uploads.load(std::sync::atomic::Ordering::SeqCst), 1);
+        assert_eq!(upload(&source(&up).inputs, 0), (0, down_set.len()));
+        assert_eq!(upload(&source(&down).outputs, 0), (0, down_set.len()));
+        assert_eq!(uploads.load(std::sync::atomic::Ordering::SeqCst), 2);
+        assert_eq!(upload(&source(&sub).inputs, 1), (1, n), "another device");
+        let twin = Arc::new(random_set(7, [16, 16, 8], 1, 200, false));
+        let twin_map = conv_map_deferred(&twin, MapKind::Submanifold, ConvGeometry::new([3, 3, 3]))
+            .unwrap()
+            .1;
+        upload(&source(&twin_map).inputs, 0);
+        assert_eq!(uploads.load(std::sync::atomic::Ordering::SeqCst), 4);
     }
 }
