@@ -4,6 +4,8 @@
 //!
 //! On the cubecl backends (CUDA, WebGPU) [`init`] also counts kernel compilations
 //! ([`kernel_compilations`]): `bench` and `check-backend` report how many happen after warm-up.
+//! With [`COUNT_LAUNCHES_ENV`] set it counts kernel launches too ([`kernel_launches`]), by name:
+//! `bench` reports them per frame.
 
 use burn::backend::Autodiff;
 
@@ -95,6 +97,13 @@ pub fn describe() -> String {
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 pub const KERNEL_CACHE_ENV: &str = "SPARSEOCC_KERNEL_CACHE";
 
+/// The environment variable that turns kernel-launch counting on (any value; cubecl backends):
+/// cubecl's profiling log at its `minimal` level (one line per executed kernel, no timing) is routed
+/// to the counter of [`kernel_launches`]; `log` also prints each launch's kernel to stderr. It costs a formatted name and a channel message per
+/// launch, so `bench` times taken with it on are not the device's speed.
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+pub const COUNT_LAUNCHES_ENV: &str = "SPARSEOCC_COUNT_LAUNCHES";
+
 /// Sets the process up for the backend; call first thing in `main`. On the cubecl backends this
 /// turns cubecl's compilation log on at its basic level (one line per compiled kernel), routed to
 /// the `log` crate, where a small logger counts the lines; warnings and errors of cubecl and wgpu are
@@ -103,7 +112,7 @@ pub const KERNEL_CACHE_ENV: &str = "SPARSEOCC_KERNEL_CACHE";
 /// [`KERNEL_CACHE_ENV`] names, if any.
 pub fn init() {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
-    compile_count::install();
+    kernel_counts::install();
 }
 
 /// Kernels compiled so far by this process (None on the CPU backend, which compiles nothing).
@@ -112,7 +121,7 @@ pub fn init() {
 pub fn kernel_compilations() -> Option<u64> {
     #[cfg(any(feature = "cuda", feature = "wgpu"))]
     {
-        Some(compile_count::COMPILES.load(std::sync::atomic::Ordering::SeqCst))
+        Some(kernel_counts::COMPILES.load(std::sync::atomic::Ordering::SeqCst))
     }
     #[cfg(not(any(feature = "cuda", feature = "wgpu")))]
     {
@@ -123,12 +132,34 @@ pub fn kernel_compilations() -> Option<u64> {
 /// [`kernel_compilations`] once it has stopped changing for 200 ms (at most 5 s): cubecl hands each
 /// compilation's log line to a background task, so the count trails the launches by a moment.
 pub fn settled_kernel_compilations() -> Option<u64> {
-    let mut last = kernel_compilations()?;
+    settled(kernel_compilations)
+}
+
+/// Kernel launches so far by this process, by kernel name (cubecl's short form of its type name),
+/// when [`COUNT_LAUNCHES_ENV`] is set on a cubecl backend; `None` otherwise. Read once the count
+/// has settled (it trails the launches as [`settled_kernel_compilations`] does).
+pub fn kernel_launches() -> Option<Vec<(String, u64)>> {
+    #[cfg(any(feature = "cuda", feature = "wgpu"))]
+    {
+        kernel_counts::counting_launches().then(|| {
+            settled(|| Some(kernel_counts::LAUNCHES.load(std::sync::atomic::Ordering::SeqCst)));
+            kernel_counts::launches_by_name()
+        })
+    }
+    #[cfg(not(any(feature = "cuda", feature = "wgpu")))]
+    {
+        None
+    }
+}
+
+/// `count()` once it has stopped changing for 200 ms (at most 5 s).
+fn settled(count: impl Fn() -> Option<u64>) -> Option<u64> {
+    let mut last = count()?;
     let start = std::time::Instant::now();
     let mut stable_since = std::time::Instant::now();
     while start.elapsed() < std::time::Duration::from_secs(5) {
         std::thread::sleep(std::time::Duration::from_millis(20));
-        let now = kernel_compilations()?;
+        let now = count()?;
         if now != last {
             last = now;
             stable_since = std::time::Instant::now();
@@ -140,16 +171,47 @@ pub fn settled_kernel_compilations() -> Option<u64> {
 }
 
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
-mod compile_count {
-    use super::KERNEL_CACHE_ENV;
+mod kernel_counts {
+    use super::{COUNT_LAUNCHES_ENV, KERNEL_CACHE_ENV};
     use cubecl::config::cache::CacheConfig;
     use cubecl::config::compilation::CompilationLogLevel;
+    use cubecl::config::profiling::ProfilingLogLevel;
     use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
     use cubecl_common::config::logger::LogCrateLevel;
-    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::collections::HashMap;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Mutex;
 
     /// Kernels compiled so far.
     pub static COMPILES: AtomicU64 = AtomicU64::new(0);
+    /// Kernels launched so far (counted only when [`COUNTING_LAUNCHES`]).
+    pub static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+    /// Whether cubecl's execution log is on and counted.
+    static COUNTING_LAUNCHES: AtomicBool = AtomicBool::new(false);
+    /// Whether every counted launch is also printed (`SPARSEOCC_COUNT_LAUNCHES=log`; with
+    /// `SPARSEOCC_TRACE=1` the stage lines fall between them).
+    static PRINTING_LAUNCHES: AtomicBool = AtomicBool::new(false);
+    /// Launches by kernel name.
+    static BY_NAME: Mutex<Option<HashMap<String, u64>>> = Mutex::new(None);
+
+    /// How cubecl's profiling log at its `minimal` level starts the line of each executed kernel.
+    const EXECUTING: &str = "Executing ";
+
+    pub fn counting_launches() -> bool {
+        COUNTING_LAUNCHES.load(Ordering::SeqCst)
+    }
+
+    /// The launch counts by name, most launched first (ties by name).
+    pub fn launches_by_name() -> Vec<(String, u64)> {
+        let by_name = BY_NAME.lock().unwrap_or_else(|p| p.into_inner());
+        let mut v: Vec<(String, u64)> = by_name
+            .iter()
+            .flatten()
+            .map(|(k, &n)| (k.clone(), n))
+            .collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+        v
+    }
 
     /// How cubecl's compilation log starts the entry of each compiled kernel (basic level; full
     /// level, which `CUBECL_DEBUG_LOG` selects).
@@ -166,6 +228,18 @@ mod compile_count {
             let cubecl = record.target().starts_with("cubecl");
             if cubecl && record.level() >= log::Level::Info {
                 let msg = record.args().to_string();
+                if let Some(name) = msg.strip_prefix(EXECUTING) {
+                    LAUNCHES.fetch_add(1, Ordering::SeqCst);
+                    if PRINTING_LAUNCHES.load(Ordering::Relaxed) {
+                        eprintln!("launch {name}");
+                    }
+                    let mut by_name = BY_NAME.lock().unwrap_or_else(|p| p.into_inner());
+                    *by_name
+                        .get_or_insert_with(HashMap::new)
+                        .entry(name.to_string())
+                        .or_default() += 1;
+                    return;
+                }
                 if MARKS.iter().any(|m| msg.starts_with(m)) {
                     COMPILES.fetch_add(1, Ordering::SeqCst);
                     match std::env::var("SPARSEOCC_LOG_COMPILES").as_deref() {
@@ -211,7 +285,17 @@ mod compile_count {
             logger.level = CompilationLogLevel::Basic;
         }
         logger.log = Some(LogCrateLevel::Info);
+        let count_launches = std::env::var_os(COUNT_LAUNCHES_ENV).is_some();
+        let print_launches = std::env::var(COUNT_LAUNCHES_ENV).as_deref() == Ok("log");
+        PRINTING_LAUNCHES.store(print_launches, Ordering::SeqCst);
+        if count_launches {
+            // One line per executed kernel, without timing (no sync per launch).
+            let logger = &mut config.profiling.logger;
+            logger.level = ProfilingLogLevel::Minimal;
+            logger.log = Some(LogCrateLevel::Info);
+        }
         CubeClRuntimeConfig::set(config);
+        COUNTING_LAUNCHES.store(count_launches, Ordering::SeqCst);
         // Another logger may already be installed (a test harness); then nothing is counted.
         if log::set_logger(&COUNTER).is_ok() {
             log::set_max_level(log::LevelFilter::Info);

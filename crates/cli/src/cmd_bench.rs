@@ -80,6 +80,7 @@ fn run_single(args: &BenchArgs) -> Result<BenchResult> {
         device_name: backend::describe(),
         nvidia_smi: cfg!(feature = "cuda"),
         kernel_compilations: &backend::settled_kernel_compilations,
+        kernel_launches: &backend::kernel_launches,
     };
     Ok(bench::run_model::<Infer>(cfg, &run, &backend::device())?)
 }
@@ -298,6 +299,18 @@ fn print_table(results: &[BenchResult], sgemm: f64) {
         println!("    GFLOP by op: {}", ops.join(", "));
         if let Some(c) = r.compiles_after_warmup {
             println!("    kernels compiled after the warm-up: {c}");
+        }
+        if let Some(n) = r.launches_per_frame {
+            let top: Vec<String> = r
+                .launches_by_kernel
+                .iter()
+                .take(8)
+                .map(|(k, n)| format!("{k} {n:.0}"))
+                .collect();
+            println!(
+                "    kernel launches per frame: {n:.0} (most: {}; counting slows the timed frames)",
+                top.join(", ")
+            );
         }
     }
     if let Some(r) = results.first() {

@@ -79,7 +79,18 @@ pub struct BenchResult {
     /// Kernels compiled during the timed frames, after the warm-up (cubecl backends; `None` on the
     /// CPU, which compiles nothing). Anything above 0 is a compilation inside a frame's latency.
     pub compiles_after_warmup: Option<u64>,
+    /// Kernel launches per timed frame, when the backend counts them (`SPARSEOCC_COUNT_LAUNCHES` on
+    /// a cubecl backend): each launch costs the device a few microseconds whatever its size, so
+    /// this times a few microseconds bounds a frame from below.
+    #[serde(default)]
+    pub launches_per_frame: Option<f64>,
+    /// The most launched kernels per timed frame (at most [`TOP_KERNELS`]), most first.
+    #[serde(default)]
+    pub launches_by_kernel: Vec<(String, f64)>,
 }
+
+/// How many kernels [`BenchResult::launches_by_kernel`] lists.
+pub const TOP_KERNELS: usize = 25;
 
 /// One stage of the profiled passes.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -131,6 +142,30 @@ pub struct BenchRun<'a> {
     /// Kernels compiled so far, read after a device sync once the count has settled; `None` on
     /// backends that compile nothing.
     pub kernel_compilations: &'a dyn Fn() -> Option<u64>,
+    /// Kernels launched so far, by name, read the same way; `None` where launches are not counted.
+    pub kernel_launches: &'a dyn Fn() -> Option<Vec<(String, u64)>>,
+}
+
+/// Launches per frame between two reads of [`BenchRun::kernel_launches`] `frames` frames apart:
+/// the total and the [`TOP_KERNELS`] most launched kernels, most first (ties by name).
+pub fn launches_per_frame(
+    before: &[(String, u64)],
+    after: &[(String, u64)],
+    frames: usize,
+) -> (f64, Vec<(String, f64)>) {
+    let frames = frames.max(1) as f64;
+    let mut by_kernel: Vec<(String, f64)> = after
+        .iter()
+        .map(|(k, n)| {
+            let was = before.iter().find(|(b, _)| b == k).map_or(0, |(_, m)| *m);
+            (k.clone(), n.saturating_sub(was) as f64 / frames)
+        })
+        .filter(|(_, n)| *n > 0.0)
+        .collect();
+    by_kernel.sort_by(|a, b| b.1.total_cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    let total = by_kernel.iter().map(|(_, n)| n).sum();
+    by_kernel.truncate(TOP_KERNELS);
+    (total, by_kernel)
 }
 
 /// A value of `/proc/self/status` in kiB (`key` with its colon, e.g. `"VmHWM:"`); `None` where the
@@ -240,9 +275,11 @@ pub fn run_model<B: ModelBackend>(
     let mut latency = Vec::new();
     let mut stages = Vec::new();
     let mut compiled_at_warmup = None;
+    let mut launched_at_warmup = None;
     for i in 0..run.warmup + run.frames.max(1) {
         if i == run.warmup {
             compiled_at_warmup = (run.kernel_compilations)();
+            launched_at_warmup = (run.kernel_launches)();
         }
         let t0 = Instant::now();
         let mut batch = collate::<B>(std::slice::from_ref(&sample), grid, device)?;
@@ -261,6 +298,14 @@ pub fn run_model<B: ModelBackend>(
         (Some(a), Some(b)) => Some(b - a),
         _ => None,
     };
+    let (launches_per_frame, launches_by_kernel) =
+        match (launched_at_warmup, (run.kernel_launches)()) {
+            (Some(a), Some(b)) => {
+                let (n, by) = launches_per_frame(&a, &b, run.frames.max(1));
+                (Some(n), by)
+            }
+            _ => (None, Vec::new()),
+        };
     // Profiled pass: synchronise after every stage (this changes overlap, so it is kept apart), and
     // count the multiply-adds of every stage (the same in every pass: same input, same network).
     let mut sums: Vec<(String, f64, u64)> = Vec::new();
@@ -348,6 +393,8 @@ pub fn run_model<B: ModelBackend>(
         profile_stages,
         gflops_by_op,
         compiles_after_warmup,
+        launches_per_frame,
+        launches_by_kernel,
     })
 }
 
@@ -407,6 +454,40 @@ mod tests {
     }
 
     #[test]
+    fn launches_per_frame_are_the_difference_over_the_frames() {
+        let s = |v: &[(&str, u64)]| -> Vec<(String, u64)> {
+            v.iter().map(|&(k, n)| (k.to_string(), n)).collect()
+        };
+        let before = s(&[("matmul", 10), ("fused", 4), ("gone", 3)]);
+        // `fused` 4 -> 10, `matmul` 10 -> 16 (a tie, broken by name), `new` 0 -> 2; `gone` and
+        // `same` launched nothing in between.
+        let after = s(&[
+            ("fused", 10),
+            ("gone", 3),
+            ("matmul", 16),
+            ("new", 2),
+            ("same", 0),
+        ]);
+        let (total, by) = launches_per_frame(&before, &after, 2);
+        assert_eq!(total, 7.0);
+        let want = vec![
+            ("fused".to_string(), 3.0),
+            ("matmul".to_string(), 3.0),
+            ("new".to_string(), 1.0),
+        ];
+        assert_eq!(by, want);
+        let many: Vec<(String, u64)> = (0..40).map(|i| (format!("k{i:02}"), i + 1)).collect();
+        let (total, by) = launches_per_frame(&[], &many, 1);
+        assert_eq!(
+            total,
+            (1..=40).sum::<u64>() as f64,
+            "the total counts every kernel"
+        );
+        assert_eq!(by.len(), TOP_KERNELS);
+        assert_eq!(by[0], ("k39".to_string(), 40.0));
+    }
+
+    #[test]
     fn status_values_are_read_in_kib() {
         let status = "Name:\tbench\nVmHWM:\t  204800 kB\nVmRSS:\t  102400 kB\n";
         assert_eq!(status_value_kib(status, "VmHWM:"), Some(204800.0));
@@ -447,6 +528,8 @@ mod tests {
             profile_stages: Vec::new(),
             gflops_by_op: Vec::new(),
             compiles_after_warmup: None,
+            launches_per_frame: None,
+            launches_by_kernel: Vec::new(),
         };
         assert_eq!(result.final_voxels(), Some(120));
         let none = BenchResult {
