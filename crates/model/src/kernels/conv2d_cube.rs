@@ -366,14 +366,19 @@ impl Unfold {
             weight.matmul(x).reshape([cout, n, positions])
         } else {
             let x = x.into_primitive().tensor();
-            let parts: Vec<_> = self
+            let mut parts: Vec<_> = self
                 .blocks()
                 .map(|(l0, lc)| {
                     let cols = self.cols::<R, F, I, BT>(&x, l0, lc);
                     weight.clone().matmul(cols).reshape([cout, n, lc])
                 })
                 .collect();
-            Tensor::cat(parts, 2)
+            // One block (the common case) needs no concatenation: a cat of one tensor would
+            // still copy it (a launch and a pass over the output).
+            match parts.len() {
+                1 => parts.pop().expect("one block"),
+                _ => Tensor::cat(parts, 2),
+            }
         };
         let y = y.swap_dims(0, 1).reshape([n, cout, g.ho, g.wo]);
         match bias {
