@@ -4,15 +4,17 @@
 #      SparseOcc++ forward pass on CUDA against the NdArray CPU reference;
 #   2. one traced SparseOcc++ pass at the full SemanticKITTI setting (384x1280, ResNet-50, FP32,
 #      batch 1; `SPARSEOCC_TRACE=1` prints every stage and U-Net level as it finishes, so a slow
-#      first pass — kernel compilation, autotuning — shows where it is);
-#   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, the same with the
+#      first pass — kernel compilation, autotuning — shows where it is), counting the kernel
+#      launches per frame by kernel (`SPARSEOCC_COUNT_LAUNCHES=1`, in trace_pp.json);
+#   3. `sparseocc bench` of SparseOcc++ at that setting with the per-stage profile, then the three
+#      models side by side (ALL=0 skips it), then the same SparseOcc++ bench with the
 #      sparse convolutions on the gather + matrix-product path (`SPARSEOCC_CUBE_CONV=gather-gemm`, the
 #      peer of the default `#[cube]` kernels), the same with the DCA sampling as burn tensor ops
 #      (`SPARSEOCC_CUBE_DCA=tensor-ops`, the peer of its `#[cube]` kernel; DCA=0 skips it), the same
 #      with the kernel maps built on the host (`SPARSEOCC_CUBE_MAPS=host`, the peer of the
 #      device-built tables; MAPS=0 skips it), the same with burn's direct image convolutions
-#      (`SPARSEOCC_CUBE_CONV2D=direct`, the peer of im2col + matmul; CONV2D=0 skips it), then the
-#      three models side by side, then (SCAN=1) the memory scan;
+#      (`SPARSEOCC_CUBE_CONV2D=direct`, the peer of im2col + matmul; CONV2D=0 skips it), then
+#      (SCAN=1) the memory scan;
 #   4. (TRAIN=0 skips) SparseOcc++ training steps at that setting (batch 1, the paper's frames per
 #      GPU) on a synthetic SemanticKITTI-layout sequence: the median step time as shipped (the DCA sampling's `#[cube]` training op, the
 #      image convolutions' im2col op), with the DCA sampling as tensor ops in training
@@ -24,7 +26,10 @@
 # come back with the output; CACHE_FROM=<an earlier OUT> copies that folder in first (same binary:
 # same key), so that a later run starts with its kernels compiled.
 # Every step has its own time limit (seconds, overridable) so that one slow step still leaves the
-# others' results.
+# others' results, and the whole script a budget (BUDGET seconds, default 560, under a device call's
+# 600): a step gets at most what is left of it, and a step with under 20 s left is skipped. The
+# steps run in the order of what they are needed for: the check, the trace, the SparseOcc++ speed
+# and the three models (the acceptance), then the peers and training.
 #
 # Usage: scripts/gpu_check.sh [OUT_DIR]
 # With SPARSEOCC_BIN set, uses that binary (built elsewhere with `--features cuda`, e.g. on a CPU-only
@@ -42,6 +47,7 @@ T_ALL=${T_ALL:-150}
 T_SCAN=${T_SCAN:-120}
 T_TRAIN=${T_TRAIN:-180}
 TRAIN_STEPS=${TRAIN_STEPS:-8}
+BUDGET=${BUDGET:-560}
 mkdir -p "$OUT"
 BIN=${SPARSEOCC_BIN:-}
 if [ -z "$BIN" ]; then
@@ -49,8 +55,13 @@ if [ -z "$BIN" ]; then
   BIN=${CARGO_TARGET_DIR:-target}/release/sparseocc
 fi
 step() { # name, limit, command...
-  local name=$1 limit=$2
+  local name=$1 limit=$2 left=$((BUDGET - SECONDS))
   shift 2
+  if [ "$left" -lt 20 ]; then
+    echo "== $name: skipped, ${left} s of the ${BUDGET} s budget left" | tee -a "$OUT/skipped.txt"
+    return 0
+  fi
+  [ "$left" -lt "$limit" ] && limit=$left
   echo "== $name (limit ${limit} s)"
   local t0=$SECONDS
   timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
@@ -70,11 +81,15 @@ export SPARSEOCC_KERNEL_CACHE="$CACHE" CUDA_CACHE_PATH="$CACHE/driver" CUDA_CACH
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$OUT/gpu.txt"
 step check_backend "$T_CHECK" "$BIN" check-backend --json "$OUT/check_backend.json"
 if [ "${TRACE:-1}" = 1 ]; then
-  step trace_pp "$T_TRACE" env SPARSEOCC_TRACE=1 "$BIN" bench --config "$CFG" --models sparseocc++ \
-    --frames 1 --warmup 2
+  step trace_pp "$T_TRACE" env SPARSEOCC_TRACE=1 SPARSEOCC_COUNT_LAUNCHES=1 "$BIN" bench \
+    --config "$CFG" --models sparseocc++ --frames 1 --warmup 2 --json "$OUT/trace_pp.json"
 fi
 step bench_pp "$T_BENCH" "$BIN" bench --config "$CFG" --models sparseocc++ \
   --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp.json"
+if [ "${ALL:-1}" = 1 ]; then
+  step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
+    --frames 3 --warmup 2 --json "$OUT/bench_all.json"
+fi
 if [ "${GG:-1}" = 1 ]; then
   step bench_pp_gather_gemm "$T_BENCH" env SPARSEOCC_CUBE_CONV=gather-gemm "$BIN" bench \
     --config "$CFG" --models sparseocc++ --frames "$FRAMES" --warmup 3 --json "$OUT/bench_pp_gg.json"
@@ -117,12 +132,8 @@ if [ "${TRAIN:-1}" = 1 ]; then
   [ "${DCA:-1}" = 1 ] && train_step train_pp_dca_tensor_ops SPARSEOCC_CUBE_DCA=cube-infer
   [ "${CONV2D:-1}" = 1 ] && train_step train_pp_direct_conv2d SPARSEOCC_CUBE_CONV2D=direct
 fi
-if [ "${ALL:-1}" = 1 ]; then
-  step bench_all "$T_ALL" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
-    --frames 3 --warmup 2 --json "$OUT/bench_all.json"
-fi
 if [ "${SCAN:-0}" = 1 ]; then
   step memory_scan "$T_SCAN" "$BIN" bench --config "$CFG" --models sparseocc++,sparseocc,dense \
     --frames 1 --warmup 2 --scan "$OUT/memory_scan"
 fi
-echo "results in $OUT"
+echo "results in $OUT ($SECONDS s)"
