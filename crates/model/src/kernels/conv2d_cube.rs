@@ -358,11 +358,16 @@ impl Unfold {
         let cout = weight.dims()[0];
         let positions = self.positions();
         // `[C_out, N, L]`, in column blocks.
+        // With one image, `[N, C, L]` and `[C, N, L]` are the same memory: a reshape, where the
+        // swap of the first two axes would copy the tensor (a launch and a pass over it).
         let y = if g.is_pointwise() {
-            let x = x
-                .reshape([n, c, positions])
-                .swap_dims(0, 1)
-                .reshape([c, n * positions]);
+            let x = match n {
+                1 => x.reshape([c, positions]),
+                _ => x
+                    .reshape([n, c, positions])
+                    .swap_dims(0, 1)
+                    .reshape([c, n * positions]),
+            };
             weight.matmul(x).reshape([cout, n, positions])
         } else {
             let x = x.into_primitive().tensor();
@@ -380,7 +385,10 @@ impl Unfold {
                 _ => Tensor::cat(parts, 2),
             }
         };
-        let y = y.swap_dims(0, 1).reshape([n, cout, g.ho, g.wo]);
+        let y = match n {
+            1 => y.reshape([n, cout, g.ho, g.wo]),
+            _ => y.swap_dims(0, 1).reshape([n, cout, g.ho, g.wo]),
+        };
         match bias {
             Some(b) => y + b.reshape([1, cout, 1, 1]),
             None => y,
