@@ -43,7 +43,7 @@ use occ_model::encoder::fpn::{FpnConfig, ImageEncoderConfig};
 use occ_sparse::backend::sparse_conv;
 use occ_sparse::backend::SparseConvBackend;
 use occ_sparse::kernel_map::{conv_map, conv_map_deferred, MapKind};
-use occ_sparse::{ConvGeometry, CoordSet};
+use occ_sparse::{ConvGeometry, CoordSet, RowBucket};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -483,7 +483,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         );
     }
 
-    // Row scatter-add and gather over a plan (occ_sparse::rows), forward and gradients, on more
+    // Row scatter-add, gather and padding (occ_sparse::rows), forward and gradients, on more
     // rows than one shader loop may visit on lavapipe (65,532).
     for (h, n_out, cols) in [(300_000usize, 70_000usize, 8usize), (254_512, 254_512, 3)] {
         let (e, case) = rows_case(h, n_out, cols, &cpu_dev, &dev)?;
@@ -1521,7 +1521,8 @@ fn dca_case(
     Ok((worst, entry))
 }
 
-/// Runs `scatter_add_rows` and `gather_rows` with their gradients on `Bk`.
+/// Runs `scatter_add_rows`, `gather_rows` and `pad_rows` (to the cubecl row bucket) with their
+/// gradients on `Bk`.
 fn rows_run<Bk>(
     plan: &Arc<occ_sparse::RowPlan>,
     v: &[f32],
@@ -1536,15 +1537,28 @@ where
         .require_grad();
     let xt = Tensor::<Bk, 2>::from_data(TensorData::new(x.to_vec(), [plan.n_out(), cols]), device)
         .require_grad();
+    // The pad's input: the gathered rows' values, a leaf of its own (its gradient apart).
+    let pt = Tensor::<Bk, 2>::from_data(TensorData::new(x.to_vec(), [plan.n_out(), cols]), device)
+        .require_grad();
     let s = occ_sparse::scatter_add_rows(vt.clone(), plan);
     let g = occ_sparse::gather_rows(xt.clone(), plan);
-    // Non-uniform upstream gradients: squares.
-    let grads = (s.clone().powf_scalar(2.0).sum() + g.clone().powf_scalar(2.0).sum()).backward();
+    let p = occ_sparse::pad_rows(pt.clone(), RowBucket::CUBECL.padded(plan.n_out()));
+    // Non-uniform upstream gradients: squares (and a row-dependent weight on the pad, whose zero
+    // rows the square would not see).
+    let w = Tensor::<Bk, 1, Int>::arange(0..p.dims()[0] as i64, device)
+        .float()
+        .reshape([p.dims()[0], 1]);
+    let grads = (s.clone().powf_scalar(2.0).sum()
+        + g.clone().powf_scalar(2.0).sum()
+        + (p.clone().powf_scalar(2.0) + p.clone() * w).sum())
+    .backward();
     Ok(vec![
         to_vec(s),
         to_vec(g),
         to_vec(vt.grad(&grads).context("no grad of the scattered rows")?),
         to_vec(xt.grad(&grads).context("no grad of the gathered rows")?),
+        to_vec(p),
+        to_vec(pt.grad(&grads).context("no grad of the padded rows")?),
     ])
 }
 
@@ -1813,7 +1827,7 @@ fn conv2d_inference_cases(
 /// as `burn_interpolate_*` and not counted: its backward is wrong on cubecl then), the stem's
 /// 3x3 stride-2 max pool, and the two-level BatchNorm (`occ_sparse::norm::batch_norm`) with its
 /// gamma and beta.
-fn encoder_ops_run<Bk: burn::tensor::backend::AutodiffBackend>(
+fn encoder_ops_run<Bk: burn::tensor::backend::AutodiffBackend + occ_sparse::SparseConvBackend>(
     dev: &burn::tensor::Device<Bk>,
 ) -> Vec<Vec<f32>> {
     use burn::tensor::module::{interpolate, max_pool2d};
@@ -1920,8 +1934,8 @@ fn encoder_ops_case(
     (worst, case)
 }
 
-/// Scatter-add of `h` rows into `n_out` (random destinations) and the gather back, on the
-/// backend under test against the CPU reference.
+/// Scatter-add of `h` rows into `n_out` (random destinations), the gather back and the `n_out`
+/// rows padded to their row bucket, on the backend under test against the CPU reference.
 fn rows_case(
     h: usize,
     n_out: usize,
@@ -1938,7 +1952,14 @@ fn rows_case(
     let x: Vec<f32> = (0..n_out * cols).map(|_| r()).collect();
     let reference = rows_run::<Autodiff<Cpu>>(&plan, &v, &x, cols, cpu_dev)?;
     let got = rows_run::<Train>(&plan, &v, &x, cols, dev)?;
-    let names = ["scatter", "gather", "grad_scatter", "grad_gather"];
+    let names = [
+        "scatter",
+        "gather",
+        "grad_scatter",
+        "grad_gather",
+        "pad",
+        "grad_pad",
+    ];
     let mut case = serde_json::json!({
         "case": format!("rows_{h}_to_{n_out}x{cols}"),
         "max_segment": plan.max_segment(),

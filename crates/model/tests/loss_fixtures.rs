@@ -128,7 +128,7 @@ fn host<B: Backend, const D: usize>(t: Tensor<B, D>) -> Vec<f64> {
 }
 
 /// Evaluates loss `name` of the fixture on logits.
-fn eval_loss<B: Backend>(
+fn eval_loss<B: occ_sparse::SparseConvBackend>(
     name: &str,
     logits: Tensor<B, 2>,
     labels: &[u8],
@@ -143,7 +143,10 @@ fn eval_loss<B: Backend>(
     }
 }
 
-fn check_fixture<B: burn::tensor::backend::AutodiffBackend>(tol: f64, grad_tol: f64) {
+fn check_fixture<B: burn::tensor::backend::AutodiffBackend + occ_sparse::SparseConvBackend>(
+    tol: f64,
+    grad_tol: f64,
+) {
     let Some(case) = load_case() else { return };
     for (name, value, grad_ref) in &case.refs {
         let x = tensor2::<B>(&case.logits, [case.n, case.c]).require_grad();

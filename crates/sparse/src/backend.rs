@@ -103,14 +103,9 @@ impl RowBucket {
     ///
     /// # Shapes
     /// - x: `[rows, c]` -> `[self.padded(rows), c]`
-    pub fn pad<B: Backend>(self, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        let [rows, c] = x.dims();
-        let padded = self.padded(rows);
-        if padded == rows {
-            return x;
-        }
-        let device = x.device();
-        Tensor::cat(vec![x, Tensor::zeros([padded - rows, c], &device)], 0)
+    pub fn pad<B: SparseConvBackend>(self, x: Tensor<B, 2>) -> Tensor<B, 2> {
+        let [rows, _] = x.dims();
+        rows::pad_rows(x, self.padded(rows))
     }
 
     /// `f` on `x`'s rows padded to the bucket, its result cut back to `x`'s rows: for row-wise `f`
@@ -118,7 +113,7 @@ impl RowBucket {
     ///
     /// # Shapes
     /// - x: `[rows, c]`, f: `[r, c] -> [r, d]` -> `[rows, d]`
-    pub fn map<B: Backend>(
+    pub fn map<B: SparseConvBackend>(
         self,
         x: Tensor<B, 2>,
         f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>,
@@ -478,6 +473,17 @@ pub trait SparseConvBackend: Backend {
     fn gather_rows(x: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         rows::gather_rows_portable::<Self>(x, &plan)
     }
+
+    /// `x` with zero rows appended up to `rows` rows ([`crate::pad_rows`], [`RowBucket::pad`]);
+    /// under `Autodiff` its backward is the output gradient's first rows. The default is burn's
+    /// `cat` with a block of zeros (a fill and a copy of each part on the cubecl backends, which
+    /// pad in one kernel instead).
+    ///
+    /// # Shapes
+    /// - x: `[n, C]` (`n <= rows`) -> `[rows, C]`
+    fn pad_rows(x: FloatTensor<Self>, rows: usize) -> FloatTensor<Self> {
+        rows::pad_rows_portable::<Self>(x, rows)
+    }
 }
 
 fn host_forward<B: Backend>(
@@ -697,6 +703,10 @@ macro_rules! cube_sparse_conv {
             crate::cube::device_pair_count::<$runtime, $f, $i, $b>(map, device)
         }
 
+        fn pad_rows(x: FloatTensor<Self>, rows: usize) -> FloatTensor<Self> {
+            crate::cube::fusion_pad_rows::<$runtime, $f, $i, $b>(x, rows)
+        }
+
         fn sparse_conv(
             x: FloatTensor<Self>,
             w: FloatTensor<Self>,
@@ -843,6 +853,23 @@ fn autodiff_row_op<B: SparseConvBackend, C: CheckpointStrategy>(
     }
 }
 
+/// Backward of [`SparseConvBackend::pad_rows`]: the output gradient's first rows (the input's).
+#[derive(Debug)]
+struct PadRowsBackward;
+
+impl<B: SparseConvBackend> Backward<B, 1> for PadRowsBackward {
+    /// The input's row count.
+    type State = usize;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dout = grads.consume::<B>(&ops.node);
+        if let Some(node) = &ops.parents[0] {
+            let dx = wrap::<B, 2>(dout).narrow(0, 0, ops.state);
+            grads.register::<B>(node.id, unwrap(dx));
+        }
+    }
+}
+
 impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff<B, C> {
     const MAX_GATHER_ELEMS: usize = B::MAX_GATHER_ELEMS;
     const ROW_BUCKET: RowBucket = B::ROW_BUCKET;
@@ -871,6 +898,18 @@ impl<B: SparseConvBackend, C: CheckpointStrategy> SparseConvBackend for Autodiff
 
     fn gather_rows(x: FloatTensor<Self>, plan: Arc<RowPlan>) -> FloatTensor<Self> {
         autodiff_row_op::<B, C>(RowOp::Gather, x, plan)
+    }
+
+    fn pad_rows(x: FloatTensor<Self>, rows: usize) -> FloatTensor<Self> {
+        let n = TensorMetadata::shape(&x.primitive)[0];
+        match PadRowsBackward
+            .prepare::<C>([x.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(n, B::pad_rows(x.primitive, rows)),
+            OpsKind::UnTracked(prep) => prep.finish(B::pad_rows(x.primitive, rows)),
+        }
     }
 
     fn sparse_conv(

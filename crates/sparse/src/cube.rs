@@ -54,6 +54,25 @@ mod kernel {
         output[ABSOLUTE_POS] = acc;
     }
 
+    /// `x`'s values followed by zeros: output value `j` is `x[j]` below `x`'s length and zero
+    /// from there (a contiguous `[n, C]` tensor's rows padded to `[rows, C]`). One unit per
+    /// output value.
+    #[cube(launch_unchecked, address_type = "dynamic")]
+    pub(super) fn pad_rows_kernel<F: Numeric>(
+        x: &Tensor<F>,
+        output: &mut Tensor<F>,
+        #[define(F)] _dtype: StorageType,
+    ) {
+        if ABSOLUTE_POS >= output.len() {
+            terminate!();
+        }
+        let mut v = F::from_int(0);
+        if ABSOLUTE_POS < x.len() {
+            v = x[ABSOLUTE_POS];
+        }
+        output[ABSOLUTE_POS] = v;
+    }
+
     /// Units per side of a cube of the sparse-convolution kernels (`TILE x TILE` units), and the
     /// depth of one step of their inner products (input channels, or rows for the weight gradient).
     pub(super) const TILE: usize = 16;
@@ -554,6 +573,45 @@ pub fn segment_sum<R: CubeRuntime>(
     output
 }
 
+/// Launches [`kernel::pad_rows_kernel`] on a raw cubecl tensor: `x` with zero rows appended up
+/// to `rows` rows, in one kernel (burn's `cat` with a zero block is a fill and two copies).
+///
+/// # Shapes
+/// - x: `[n, C]` (`0 < n <= rows`) -> `[rows, C]`
+pub fn pad_rows<R: CubeRuntime>(x: CubeTensor<R>, rows: usize) -> CubeTensor<R> {
+    let x = into_contiguous(x);
+    let channels = x.meta.shape()[1];
+    let output = empty_device_dtype(
+        x.client.clone(),
+        x.device.clone(),
+        Shape::new([rows, channels]),
+        x.dtype,
+    );
+    let working_units = rows * channels;
+    if working_units == 0 {
+        return output;
+    }
+    let client = x.client.clone();
+    let cube_dim = CubeDim::new(&client, working_units);
+    let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
+    let address_type = address_type_of(&[&x, &output]);
+    let dtype = x.dtype.into();
+    // SAFETY: the output position is bounds-checked against the output and read from `x` only
+    // below `x`'s length; `x` is contiguous, so its first values are its rows in order.
+    unsafe {
+        kernel::pad_rows_kernel::launch_unchecked(
+            &client,
+            cube_count,
+            cube_dim,
+            address_type,
+            x.into_tensor_arg(),
+            output.clone().into_tensor_arg(),
+            dtype,
+        )
+    };
+    output
+}
+
 /// Marks the runtime and element types an op is for, without holding any.
 type TypesOf<R, F, I, BT> = PhantomData<fn() -> (R, F, I, BT)>;
 
@@ -712,6 +770,28 @@ where
             segment_sum(values, order, offsets, n_out)
         },
     )
+}
+
+/// Row padding ([`crate::pad_rows`]) on a fused cubecl backend: one [`pad_rows`] kernel. An
+/// input without rows takes the portable path (a kernel would bind an empty buffer).
+pub fn fusion_pad_rows<R, F, I, BT>(
+    x: FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>,
+    rows: usize,
+) -> FloatTensor<Fusion<CubeBackend<R, F, I, BT>>>
+where
+    R: CubeRuntime,
+    F: FloatElement,
+    I: IntElement,
+    BT: BoolElement,
+{
+    if x.shape[0] == 0 {
+        return crate::rows::pad_rows_portable::<Fusion<CubeBackend<R, F, I, BT>>>(x, rows);
+    }
+    let shape = Shape::new([rows, x.shape[1]]);
+    register_one::<R, F, I, BT>("occ_sparse::pad_rows", vec![x], shape, move |t| {
+        let [x] = inputs_of(t);
+        pad_rows(x, rows)
+    })
 }
 
 /// Largest cube count along one dimension (WebGPU's limit; CUDA's y and z have the same one).

@@ -32,5 +32,5 @@ pub use coords::{full_grid_coords, Coord, CoordSet};
 pub use error::{Result, SparseError};
 pub use kernel_map::{ConvGeometry, KernelMap, KernelMapKey, MapKind, MapRule, MapSource, Sites};
 pub use pool::{SparseMaxPool3d, SparseMaxPool3dConfig};
-pub use rows::{gather_rows, scatter_add_rows, sum_rows, RowPlan};
+pub use rows::{gather_rows, pad_rows, scatter_add_rows, sum_rows, RowPlan};
 pub use tensor::SparseTensor;

@@ -4,6 +4,7 @@
 //! to each voxel's channels (docs/reference_models.md §1 and §3). Both are burn's own layers applied to the feature rows: a
 //! `[N, C]` tensor is exactly the `[batch, channels]` layout they expect.
 
+use crate::backend::SparseConvBackend;
 use crate::error::Result;
 use crate::rows::sum_rows;
 use crate::tensor::SparseTensor;
@@ -24,6 +25,9 @@ impl<B: Backend> SparseBatchNorm<B> {
             inner: BatchNormConfig::new(channels).init(device),
         }
     }
+}
+
+impl<B: SparseConvBackend> SparseBatchNorm<B> {
     /// # Shapes
     /// - `[N, C]` features -> `[N, C]`
     pub fn forward(&self, x: SparseTensor<B>) -> Result<SparseTensor<B>> {
@@ -59,7 +63,10 @@ impl<B: Backend> SparseGroupNorm<B> {
 ///
 /// # Shapes
 /// - x: `[N, C, ...]` -> same
-pub fn batch_norm<B: Backend, const D: usize>(bn: &BatchNorm<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+pub fn batch_norm<B: SparseConvBackend, const D: usize>(
+    bn: &BatchNorm<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
     let device = x.device();
     if !B::ad_enabled(&device) || D < 2 {
         return bn.forward(x);

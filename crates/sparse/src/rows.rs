@@ -150,6 +150,36 @@ pub fn gather_rows_portable<B: Backend>(x: FloatTensor<B>, plan: &RowPlan) -> Fl
         .tensor()
 }
 
+/// `x` with zero rows appended up to `rows` rows, whose backward keeps the output gradient's
+/// first rows. One kernel on the cubecl backends ([`SparseConvBackend::pad_rows`]); how
+/// [`crate::RowBucket::pad`] pads. Differentiable.
+///
+/// # Shapes
+/// - x: `[n, C]` (`n <= rows`) -> `[rows, C]`
+pub fn pad_rows<B: SparseConvBackend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> {
+    let [n, _] = x.dims();
+    assert!(n <= rows, "pad_rows: {n} rows do not fit in {rows}");
+    if n == rows {
+        return x;
+    }
+    Tensor::from_primitive(TensorPrimitive::Float(B::pad_rows(
+        x.into_primitive().tensor(),
+        rows,
+    )))
+}
+
+/// The portable pad (burn `cat` with a block of zeros in `x`'s float type): the default of
+/// [`SparseConvBackend::pad_rows`].
+pub fn pad_rows_portable<B: Backend>(x: FloatTensor<B>, rows: usize) -> FloatTensor<B> {
+    let x = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(x));
+    let [n, c] = x.dims();
+    if n == rows {
+        return x.into_primitive().tensor();
+    }
+    let zeros = Tensor::<B, 2>::zeros([rows - n, c], (&x.device(), x.dtype()));
+    Tensor::cat(vec![x, zeros], 0).into_primitive().tensor()
+}
+
 /// Rows summed per block in [`sum_rows`].
 const SUM_BLOCK_ROWS: usize = 256;
 
@@ -158,21 +188,34 @@ const SUM_BLOCK_ROWS: usize = 256;
 /// column to one thread, which loops over every row: a few threads for a frame of voxels on a GPU,
 /// and on lavapipe only the first 65,532 rows are summed (measured: docs/gpu.md). Here each level
 /// loops over at most `max(256, N / 256)` rows and the first uses `N / 256 · C` threads.
-/// Differentiable (zero rows pad `N` to a whole number of blocks).
+/// Differentiable (zero rows pad `N` to a whole number of blocks, [`pad_rows`]).
 ///
 /// # Shapes
 /// - x: `[N, C]` -> `[1, C]`
-pub fn sum_rows<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
+pub fn sum_rows<B: SparseConvBackend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
+    sum_rows_padded_with(x, B::pad_rows)
+}
+
+/// [`sum_rows`] on a backend without [`SparseConvBackend`] (the raw fused cubecl backend of a
+/// kernel's backward), padding with `pad` (`[n, C]`, rows -> `[rows, C]`: such a backend's
+/// [`crate::cube::fusion_pad_rows`], or [`pad_rows_portable`]).
+///
+/// # Shapes
+/// - x: `[N, C]` -> `[1, C]`
+pub fn sum_rows_padded_with<B: Backend>(
+    x: Tensor<B, 2>,
+    pad: fn(FloatTensor<B>, usize) -> FloatTensor<B>,
+) -> Tensor<B, 2> {
     let [n, c] = x.dims();
     if n <= SUM_BLOCK_ROWS {
         return x.sum_dim(0);
     }
     let blocks = n.div_ceil(SUM_BLOCK_ROWS);
-    let pad = blocks * SUM_BLOCK_ROWS - n;
-    let x = if pad > 0 {
-        // Zero rows in x's own float type (a backend may hold several).
-        let zeros = x.clone().narrow(0, 0, 1).zeros_like().repeat_dim(0, pad);
-        Tensor::cat(vec![x, zeros], 0)
+    let x = if blocks * SUM_BLOCK_ROWS > n {
+        Tensor::from_primitive(TensorPrimitive::Float(pad(
+            x.into_primitive().tensor(),
+            blocks * SUM_BLOCK_ROWS,
+        )))
     } else {
         x
     };
@@ -180,7 +223,7 @@ pub fn sum_rows<B: Backend>(x: Tensor<B, 2>) -> Tensor<B, 2> {
         .reshape([blocks, SUM_BLOCK_ROWS, c])
         .sum_dim(1)
         .reshape([blocks, c]);
-    sum_rows(partial)
+    sum_rows_padded_with(partial, pad)
 }
 
 #[cfg(test)]
@@ -204,6 +247,31 @@ mod tests {
             let want = x.sum_dim(0).to_data().to_vec::<f32>().unwrap();
             assert_eq!(got, want, "n = {n}");
         }
+    }
+
+    #[test]
+    fn pad_rows_appends_zeros_and_keeps_the_first_rows_of_its_gradient() {
+        let dev = Default::default();
+        let v: Vec<f32> = (0..6).map(|i| i as f32 - 2.5).collect();
+        let x = Tensor::<Autodiff<B>, 2>::from_data(TensorData::new(v.clone(), [3, 2]), &dev)
+            .require_grad();
+        let p = pad_rows(x.clone(), 5);
+        assert_eq!(p.dims(), [5, 2]);
+        let mut want = v.clone();
+        want.extend([0.0; 4]);
+        assert_eq!(p.to_data().to_vec::<f32>().unwrap(), want);
+        // d/dx Σ (p ⊙ w) = w's first three rows.
+        let w: Vec<f32> = (0..10).map(|i| i as f32 + 1.0).collect();
+        let wt = Tensor::<Autodiff<B>, 2>::from_data(TensorData::new(w.clone(), [5, 2]), &dev);
+        let grads = (p * wt).sum().backward();
+        let gx = x.grad(&grads).unwrap().to_data().to_vec::<f32>().unwrap();
+        assert_eq!(gx, w[..6]);
+        // Already the size: the tensor itself.
+        let same = pad_rows(
+            Tensor::<B, 2>::from_data(TensorData::new(v.clone(), [3, 2]), &dev),
+            3,
+        );
+        assert_eq!(same.to_data().to_vec::<f32>().unwrap(), v);
     }
 
     #[test]

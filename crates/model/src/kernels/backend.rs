@@ -110,7 +110,7 @@ pub trait ModelBackend: SparseConvBackend {
 pub const LAYER_NORM_EPSILON: f64 = 1e-5;
 
 /// burn's `Linear`, then ReLU if asked.
-fn linear_portable<B: burn::tensor::backend::Backend, const D: usize>(
+fn linear_portable<B: SparseConvBackend, const D: usize>(
     lin: &Linear<B>,
     x: Tensor<B, D>,
     relu: bool,
@@ -130,7 +130,7 @@ fn linear_portable<B: burn::tensor::backend::Backend, const D: usize>(
 ///
 /// # Shapes
 /// - x: `[..., d_in]` -> `[..., d_out]`
-pub fn linear_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
+pub fn linear_bucketed<B: SparseConvBackend, const D: usize>(
     lin: &Linear<B>,
     x: Tensor<B, D>,
     bucket: RowBucket,
@@ -146,7 +146,7 @@ pub fn linear_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
 ///
 /// # Shapes
 /// - x: `[..., d]` -> `[..., d_out]` (`f`: `[rows, d]` -> `[rows, d_out]`)
-pub fn rows_bucketed<B: burn::tensor::backend::Backend, const D: usize>(
+pub fn rows_bucketed<B: SparseConvBackend, const D: usize>(
     x: Tensor<B, D>,
     bucket: RowBucket,
     f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>,

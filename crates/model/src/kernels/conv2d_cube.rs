@@ -425,9 +425,12 @@ impl Unfold {
         // `[C_out, N, L]`.
         let dy = dy.reshape([n, cout, positions]).swap_dims(0, 1);
         // The bias gradient as column sums over the `N·L` positions (a long axis: occ_sparse's
-        // blocked sums, not one unit a column).
-        let db = occ_sparse::sum_rows(dy.clone().swap_dims(0, 2).reshape([positions * n, cout]))
-            .reshape([cout]);
+        // blocked sums, not one unit a column, padded in one kernel).
+        let db = occ_sparse::rows::sum_rows_padded_with(
+            dy.clone().swap_dims(0, 2).reshape([positions * n, cout]),
+            occ_sparse::cube::fusion_pad_rows::<R, F, I, BT>,
+        )
+        .reshape([cout]);
         let wt = weight.clone().transpose();
         if g.is_pointwise() {
             let dy = dy.reshape([cout, n * positions]);

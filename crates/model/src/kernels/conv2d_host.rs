@@ -53,7 +53,7 @@ pub fn conv_bn<B: ModelBackend>(
 
 /// [`conv_bn`] with burn's own modules: `Conv2d::forward`, then `BatchNorm::forward`, then `relu`
 /// (the portable path, any backend).
-pub fn conv_bn_portable<B: Backend>(
+pub fn conv_bn_portable<B: occ_sparse::SparseConvBackend>(
     conv: &Conv2d<B>,
     bn: Option<&BatchNorm<B>>,
     x: Tensor<B, 4>,
@@ -102,7 +102,7 @@ pub fn conv_forward_portable<B: Backend>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> T
 
 /// `relu?(bn?(y))` with burn's `BatchNorm` (its training statistics summed in two levels:
 /// [`occ_sparse::norm::batch_norm`]) and `relu`.
-pub(crate) fn bn_relu<B: Backend>(
+pub(crate) fn bn_relu<B: occ_sparse::SparseConvBackend>(
     y: Tensor<B, 4>,
     bn: Option<&BatchNorm<B>>,
     apply_relu: bool,

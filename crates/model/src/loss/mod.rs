@@ -88,7 +88,7 @@ pub struct OccLossWeights {
 /// The occupancy loss `L_occ = L_ce + L_lovasz + L_geo_scal + L_sem_scal` (paper Eq. `loss_occ`,
 /// docs/losses.md §2-§4) with unit weights, on voxel logits `[N, C]` and labels (class 0 empty, 255 ignored).
 /// Returns the terms ([`OccTerm`]: `ce`, `lovasz`, `geo_scal`, `sem_scal`; sum them for the total).
-pub fn occ_loss<B: Backend>(
+pub fn occ_loss<B: occ_sparse::SparseConvBackend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     class_weights: &[f64],
@@ -97,7 +97,7 @@ pub fn occ_loss<B: Backend>(
 }
 
 /// [`occ_loss`] with per-term weights (a term with weight 0 is not computed).
-pub fn occ_loss_weighted<B: Backend>(
+pub fn occ_loss_weighted<B: occ_sparse::SparseConvBackend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     class_weights: &[f64],

@@ -11,7 +11,7 @@ use super::{check_labels, host_tensor, neg_log_capped, select_rows, valid_rows, 
 use crate::error::ModelError;
 use burn::prelude::*;
 use burn::tensor::activation::softmax;
-use occ_sparse::sum_rows;
+use occ_sparse::{sum_rows, SparseConvBackend};
 
 /// `num / den` where `den > 0`, and `1` (a BCE term of 0 with gradient 0) where `den <= 0`.
 fn safe_ratio<B: Backend, const D: usize>(num: Tensor<B, D>, den: Tensor<B, D>) -> Tensor<B, D> {
@@ -21,7 +21,7 @@ fn safe_ratio<B: Backend, const D: usize>(num: Tensor<B, D>, den: Tensor<B, D>) 
 }
 
 /// [`geo_scal_loss_probs`] on `softmax(logits, 1)`.
-pub fn geo_scal_loss<B: Backend>(
+pub fn geo_scal_loss<B: SparseConvBackend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     empty: u8,
@@ -37,7 +37,7 @@ pub fn geo_scal_loss<B: Backend>(
 /// `t = (label != empty)`; `P = Σ t·pn / Σ pn`, `R = Σ t·pn / Σ t`, `S = Σ (1−t)·p0 / Σ (1−t)`;
 /// `loss = −ln P − ln R − ln S`. A term whose denominator is 0 is left out (the reference gives
 /// NaN); with no row left the loss is 0.
-pub fn geo_scal_loss_probs<B: Backend>(
+pub fn geo_scal_loss_probs<B: SparseConvBackend>(
     probs: Tensor<B, 2>,
     labels: &[u8],
     empty: u8,
@@ -82,7 +82,7 @@ pub fn geo_scal_loss_probs<B: Backend>(
 }
 
 /// [`sem_scal_loss_probs`] on `softmax(logits, 1)`.
-pub fn sem_scal_loss<B: Backend>(
+pub fn sem_scal_loss<B: SparseConvBackend>(
     logits: Tensor<B, 2>,
     labels: &[u8],
     ignore: u8,
@@ -97,7 +97,7 @@ pub fn sem_scal_loss<B: Backend>(
 /// `P = Σ p_i·t / Σ p_i` (only if `Σ p_i > 0`), `R = Σ p_i·t / Σ t`,
 /// `S = Σ (1−p_i)(1−t) / Σ (1−t)` (only if `Σ (1−t) > 0`); the class loss is the sum of the
 /// `−ln` terms, and the result is their mean over the present classes (0 with no row left).
-pub fn sem_scal_loss_probs<B: Backend>(
+pub fn sem_scal_loss_probs<B: SparseConvBackend>(
     probs: Tensor<B, 2>,
     labels: &[u8],
     ignore: u8,

@@ -630,7 +630,7 @@ pub fn pp_targets<B: Backend>(
     })
 }
 
-impl<B: Backend> PPOutput<B> {
+impl<B: occ_sparse::SparseConvBackend> PPOutput<B> {
     /// The training objective of paper Sec. 4.4, `L = L_occ + L_anchor + L_scf` (docs/losses.md §7):
     /// - `occ.*`: [`occ_loss`] (weighted CE + Lovasz-softmax + geo_scal + sem_scal) on the final voxels
     ///   against their MonoScene-rule labels;
