@@ -1094,11 +1094,11 @@ impl TablePlan {
 }
 
 /// Builds a kernel map's gather table on the device from its sites (crate-private: the cell
-/// indices must come from a [`MapSource`], whose sites lie on their grids, and `plan` from the same
-/// source): the input sites' rows are
-/// written into a dense grid of their cells (spconv 1.x's dense index; a bounded voxel grid needs
-/// no hash), then every (output row, offset) reads the cell its rule reaches. Integer work, no
-/// atomics: the table equals [`KernelMap::gather_table`] entry for entry.
+/// indices must come from a [`MapSource`], whose sites lie on their grids, and `plan` from the
+/// same source): the input sites' rows are written into a dense grid of their cells (spconv 1.x's
+/// dense index; a bounded voxel grid needs no hash), then every (output row, offset) reads the
+/// cell its rule reaches. Integer work, no atomics: the table equals [`KernelMap::gather_table`]
+/// entry for entry.
 ///
 /// # Shapes
 /// - inputs: `[n_in]`, outputs: `[n_out]` (each site's linear index in its grid, the int dtype)
