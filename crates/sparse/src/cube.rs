@@ -525,6 +525,28 @@ mod kernel {
     }
 }
 
+/// An uninitialised `[rows, channels]` output in `like`'s dtype on its device, and the launch
+/// grid of one unit per output value (`None` for an output without values: nothing to launch).
+fn rows_output<R: CubeRuntime>(
+    like: &CubeTensor<R>,
+    rows: usize,
+    channels: usize,
+) -> (CubeTensor<R>, Option<(CubeCount, CubeDim)>) {
+    let output = empty_device_dtype(
+        like.client.clone(),
+        like.device.clone(),
+        Shape::new([rows, channels]),
+        like.dtype,
+    );
+    let units = rows * channels;
+    if units == 0 {
+        return (output, None);
+    }
+    let cube_dim = CubeDim::new(&like.client, units);
+    let cube_count = calculate_cube_count_elemwise(&like.client, units, cube_dim);
+    (output, Some((cube_count, cube_dim)))
+}
+
 /// Launches [`segment_sum_kernel`] on raw cubecl tensors.
 ///
 /// # Shapes
@@ -539,19 +561,11 @@ pub fn segment_sum<R: CubeRuntime>(
     let order = into_contiguous(order);
     let offsets = into_contiguous(offsets);
     let channels = values.meta.shape()[1];
-    let output = empty_device_dtype(
-        values.client.clone(),
-        values.device.clone(),
-        Shape::new([n_out, channels]),
-        values.dtype,
-    );
-    let working_units = n_out * channels;
-    if working_units == 0 {
+    let (output, grid) = rows_output(&values, n_out, channels);
+    let Some((cube_count, cube_dim)) = grid else {
         return output;
-    }
+    };
     let client = values.client.clone();
-    let cube_dim = CubeDim::new(&client, working_units);
-    let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
     let address_type = address_type_of(&[&values, &order, &offsets, &output]);
     let dtypes = [values.dtype.into(), order.dtype.into()];
     // SAFETY: every index is in range: `RowPlan` checks `dest < n_out`, so `order` holds input
@@ -581,19 +595,11 @@ pub fn segment_sum<R: CubeRuntime>(
 pub fn pad_rows<R: CubeRuntime>(x: CubeTensor<R>, rows: usize) -> CubeTensor<R> {
     let x = into_contiguous(x);
     let channels = x.meta.shape()[1];
-    let output = empty_device_dtype(
-        x.client.clone(),
-        x.device.clone(),
-        Shape::new([rows, channels]),
-        x.dtype,
-    );
-    let working_units = rows * channels;
-    if working_units == 0 {
+    let (output, grid) = rows_output(&x, rows, channels);
+    let Some((cube_count, cube_dim)) = grid else {
         return output;
-    }
+    };
     let client = x.client.clone();
-    let cube_dim = CubeDim::new(&client, working_units);
-    let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
     let address_type = address_type_of(&[&x, &output]);
     let dtype = x.dtype.into();
     // SAFETY: the output position is bounds-checked against the output and read from `x` only
