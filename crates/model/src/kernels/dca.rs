@@ -191,17 +191,12 @@ fn row_plan(dest: Vec<u32>, n_out: usize) -> Arc<RowPlan> {
     Arc::new(RowPlan::new(dest, n_out).expect("DCA hit indices are in range by construction"))
 }
 
-/// `x` with zero rows appended up to `rows`.
-fn pad_rows<B: Backend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> {
+/// `x` with zero rows appended up to `rows` ([`occ_sparse::pad_rows`]: one kernel on the cubecl
+/// backends); `x` itself when it has no rows or already `rows` or more.
+fn pad_rows<B: SparseConvBackend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> {
     let r = x.dims()[0];
     if r >= rows || r == 0 {
         return x;
     }
-    // Zero rows in x's own float type (a backend may hold several).
-    let zeros = x
-        .clone()
-        .narrow(0, 0, 1)
-        .zeros_like()
-        .repeat_dim(0, rows - r);
-    Tensor::cat(vec![x, zeros], 0)
+    occ_sparse::pad_rows(x, rows)
 }
