@@ -1436,7 +1436,7 @@ where
     let y = sample(occ_model::kernels::DcaSample {
         hits: &case.hits,
         strides: &case.strides,
-        values: values.clone(),
+        values: occ_model::kernels::FeatureRows::from_channel_last(values.clone()),
         offsets: offsets.clone(),
         weights: weights.clone(),
         gate: Some(gate.clone()),
@@ -1466,11 +1466,12 @@ fn dca_forward<Bk: occ_model::kernels::ModelBackend>(
     let y = Bk::dca_sample(occ_model::kernels::DcaSample {
         hits: &case.hits,
         strides: &case.strides,
-        values: case
-            .values
-            .iter()
-            .map(|v| Tensor::from_data(v.clone(), device))
-            .collect(),
+        values: occ_model::kernels::FeatureRows::from_channel_last(
+            case.values
+                .iter()
+                .map(|v| Tensor::from_data(v.clone(), device))
+                .collect(),
+        ),
         offsets: Tensor::from_data(case.offsets.clone(), device),
         weights: Tensor::from_data(case.weights.clone(), device),
         gate: Some(Tensor::from_data(case.gate.clone(), device)),

@@ -6,6 +6,7 @@
 //!
 //! `out[q] = 1/|V_q| · Σ_{hits h of q} g_h · Σ_{m, l, j} w_{qmlj} · bilinear(values_l[img_h], ref_h/s_l + Δp_{qmlj})[head m]`
 
+use crate::error::ModelError;
 use crate::sample::bilinear_sample;
 use burn::prelude::*;
 use burn::tensor::TensorData;
@@ -47,6 +48,98 @@ impl ViewHits {
     }
 }
 
+/// The per-pixel rows of a set of multi-level image feature maps, channel-last and concatenated over
+/// the levels: `rows [Σ_l B·V·h_l·w_l, width]` in level, image, row, column order. The layout the
+/// DCA sampling reads its values in ([`DcaSample::values`]). A frame's encoder features are laid out
+/// once ([`Self::from_nchw`]) and every DCA block of the frame projects them with one row-wise linear
+/// map ([`Self::map_rows`]), since a per-pixel map commutes with the concatenation.
+#[derive(Clone, Debug)]
+pub struct FeatureRows<B: Backend> {
+    /// `[Σ_l B·V·h_l·w_l, width]`.
+    pub rows: Tensor<B, 2>,
+    /// `[B·V, h_l, w_l]` of each level.
+    pub levels: Vec<[usize; 3]>,
+}
+
+impl<B: Backend> FeatureRows<B> {
+    /// The rows of the feature maps `maps[l] [B·V, C, h_l, w_l]` (one transposing copy per level
+    /// and one concatenation). An error when the levels disagree on `B·V` or `C`, or have no pixels.
+    pub fn from_nchw(maps: &[Tensor<B, 4>]) -> Result<Self, ModelError> {
+        let first = maps
+            .first()
+            .ok_or_else(|| ModelError::Input("image features: no levels".into()))?
+            .dims();
+        let mut rows = Vec::with_capacity(maps.len());
+        let mut levels = Vec::with_capacity(maps.len());
+        for (l, f) in maps.iter().enumerate() {
+            let [bv, c, h, w] = f.dims();
+            if bv != first[0] || c != first[1] || h == 0 || w == 0 {
+                return Err(ModelError::Input(format!(
+                    "image features: level {l} is {:?} and level 0 {first:?} (each level needs the same images and channels, and pixels)",
+                    f.dims()
+                )));
+            }
+            rows.push(f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]));
+            levels.push([bv, h, w]);
+        }
+        Ok(Self {
+            rows: Tensor::cat(rows, 0),
+            levels,
+        })
+    }
+
+    /// The rows of channel-last maps `maps[l] [B·V, h_l, w_l, width]` (one concatenation).
+    ///
+    /// # Panics
+    /// When the levels disagree on `width`.
+    pub fn from_channel_last(maps: Vec<Tensor<B, 4>>) -> Self {
+        let levels = maps.iter().map(|m| {
+            let [bv, h, w, _] = m.dims();
+            [bv, h, w]
+        });
+        let levels = levels.collect();
+        let rows = maps
+            .into_iter()
+            .map(|m| {
+                let [bv, h, w, d] = m.dims();
+                m.reshape([bv * h * w, d])
+            })
+            .collect();
+        Self {
+            rows: Tensor::cat(rows, 0),
+            levels,
+        }
+    }
+
+    /// Width of each row (`C` of the features, `D` of the values).
+    pub fn width(&self) -> usize {
+        self.rows.dims()[1]
+    }
+
+    /// Number of images `B·V` (0 without levels).
+    pub fn num_images(&self) -> usize {
+        self.levels.first().map_or(0, |l| l[0])
+    }
+
+    /// Level `l` as a channel-last map `[B·V, h_l, w_l, width]` (a view of its rows, no copy).
+    pub fn level(&self, l: usize) -> Tensor<B, 4> {
+        let start: usize = self.levels[..l].iter().map(|&[n, h, w]| n * h * w).sum();
+        let [n, h, w] = self.levels[l];
+        self.rows
+            .clone()
+            .narrow(0, start, n * h * w)
+            .reshape([n, h, w, self.width()])
+    }
+
+    /// The same levels with `rows` replaced by `f(rows)` (a row-wise map keeping the row count).
+    pub fn map_rows(&self, f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>) -> Self {
+        Self {
+            rows: f(self.rows.clone()),
+            levels: self.levels.clone(),
+        }
+    }
+}
+
 /// The inputs of the DCA sampling op. Sizes: `N` queries, `M` heads, `L` levels, `P` points per
 /// head and level, width `D` (`D / M` per head), `B·V` images.
 #[derive(Clone, Debug)]
@@ -55,8 +148,8 @@ pub struct DcaSample<'a, B: Backend> {
     pub hits: &'a ViewHits,
     /// Input pixels per feature pixel of each level (`L`).
     pub strides: &'a [usize],
-    /// The projected value map of each level, channel-last: `[B·V, h_l, w_l, D]` (`D` head-major).
-    pub values: Vec<Tensor<B, 4>>,
+    /// The projected value maps of all levels as rows `[Σ_l B·V·h_l·w_l, D]` (`D` head-major).
+    pub values: FeatureRows<B>,
     /// Sampling offsets `[N, M, L, P, 2]`, `(x, y)` in feature pixels of each level.
     pub offsets: Tensor<B, 5>,
     /// Attention weights `[N, M, L, P]`.
@@ -74,7 +167,7 @@ impl<B: Backend> DcaSample<'_, B> {
 
     /// Width `D` of the values (and of the output).
     pub fn width(&self) -> usize {
-        self.values.first().map_or(0, |v| v.dims()[3])
+        self.values.width()
     }
 }
 
@@ -121,7 +214,8 @@ pub fn sample_tensor_ops<B: SparseConvBackend>(s: DcaSample<'_, B>) -> Tensor<B,
         .max()
         .unwrap_or(0);
     let mut acc: Option<Tensor<B, 3>> = None;
-    for (lvl, (v, &stride)) in values.into_iter().zip(strides).enumerate() {
+    for (lvl, &stride) in strides.iter().enumerate().take(values.levels.len()) {
+        let v = values.level(lvl);
         let [bv, fh, fw, _] = v.dims();
         // Reference points, normalised for align_corners = false.
         let sx = 2.0 / (stride as f64 * fw as f64);
@@ -199,4 +293,70 @@ fn pad_rows<B: SparseConvBackend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> 
         return x;
     }
     occ_sparse::pad_rows(x, rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    type B = burn::backend::NdArray<f64>;
+
+    fn ramp(dims: [usize; 4], start: f64) -> Tensor<B, 4> {
+        let n: usize = dims.iter().product();
+        let v: Vec<f64> = (0..n).map(|i| start + i as f64).collect();
+        Tensor::from_data(TensorData::new(v, dims), &Default::default())
+    }
+
+    /// The rows of NCHW maps are their pixels, channel-last, level after level; each level comes
+    /// back as a channel-last view; channel-last maps give the same rows; bad levels are refused.
+    #[test]
+    fn feature_rows_lay_out_every_level_channel_last() {
+        let maps = [ramp([2, 3, 4, 5], 0.0), ramp([2, 3, 2, 2], 1000.0)];
+        let rows = FeatureRows::from_nchw(&maps).unwrap();
+        assert_eq!(rows.rows.dims(), [2 * 4 * 5 + 2 * 2 * 2, 3]);
+        assert_eq!(rows.levels, vec![[2, 4, 5], [2, 2, 2]]);
+        assert_eq!((rows.width(), rows.num_images()), (3, 2));
+        // Row of pixel (image 1, y 2, x 3) of level 0 (row (1·4 + 2)·5 + 3), and of (image 0, y 1,
+        // x 0) of level 1 (row 40 + 2).
+        let row = |r: usize| {
+            rows.rows
+                .clone()
+                .narrow(0, r, 1)
+                .into_data()
+                .to_vec::<f64>()
+        };
+        let at = |l: usize, idx: [usize; 4]| {
+            let [_, c, h, w] = maps[l].dims();
+            let base = if l == 0 { 0.0 } else { 1000.0 };
+            base + (((idx[0] * c + idx[1]) * h + idx[2]) * w + idx[3]) as f64
+        };
+        assert_eq!(
+            row((4 + 2) * 5 + 3).unwrap(),
+            (0..3).map(|c| at(0, [1, c, 2, 3])).collect::<Vec<_>>()
+        );
+        assert_eq!(
+            row(40 + 2).unwrap(),
+            (0..3).map(|c| at(1, [0, c, 1, 0])).collect::<Vec<_>>()
+        );
+        let last: Vec<Tensor<B, 4>> = maps
+            .iter()
+            .map(|m| m.clone().permute([0, 2, 3, 1]))
+            .collect();
+        for (l, m) in last.iter().enumerate() {
+            assert_eq!(rows.level(l).into_data(), m.clone().into_data());
+        }
+        let again = FeatureRows::from_channel_last(last);
+        assert_eq!(again.levels, rows.levels);
+        assert_eq!(again.rows.into_data(), rows.rows.clone().into_data());
+        let doubled = rows.map_rows(|r| r * 2.0);
+        assert_eq!(doubled.levels, rows.levels);
+        assert_eq!(
+            doubled.level(1).into_data(),
+            (rows.level(1) * 2.0).into_data()
+        );
+        // Levels that disagree on channels or images, an empty level, no levels.
+        assert!(FeatureRows::from_nchw(&[maps[0].clone(), ramp([2, 2, 2, 2], 0.0)]).is_err());
+        assert!(FeatureRows::from_nchw(&[maps[0].clone(), ramp([1, 3, 2, 2], 0.0)]).is_err());
+        assert!(FeatureRows::from_nchw(&[maps[0].clone(), ramp([2, 3, 0, 2], 0.0)]).is_err());
+        assert!(FeatureRows::<B>::from_nchw(&[]).is_err());
+    }
 }

@@ -22,7 +22,7 @@
 //! All sizes are runtime values: the compiled kernels do not depend on the query or hit count.
 
 use crate::kernels::dca::DcaSample;
-use crate::kernels::dca_host::{value_rows, SampleLayout};
+use crate::kernels::dca_host::SampleLayout;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -791,7 +791,7 @@ where
     let gate = s.gate.unwrap_or_else(|| Tensor::ones([dims.hits], &device));
     let flat = |t: Tensor<Fused<R, F, I, BT>, 1>| t.into_primitive().tensor();
     let inputs = vec![
-        value_rows(s.values).into_primitive().tensor(),
+        s.values.rows.into_primitive().tensor(),
         flat(s.offsets.reshape([dims.n * dims.taps() * 2])),
         flat(s.weights.reshape([dims.n * dims.taps()])),
         flat(gate),
@@ -858,7 +858,7 @@ where
     let gate = s.gate.unwrap_or_else(|| Tensor::ones([dims.hits], &device));
     let flat = |t: Tensor<Ad<R, F, I, BT, C>, 1>| t.into_primitive().tensor();
     let parents = [
-        value_rows(s.values).into_primitive().tensor(),
+        s.values.rows.into_primitive().tensor(),
         flat(s.offsets.reshape([dims.n * dims.taps() * 2])),
         flat(s.weights.reshape([dims.n * dims.taps()])),
         flat(gate),

@@ -70,11 +70,9 @@ impl SampleLayout {
     pub fn of<B: Backend>(s: &DcaSample<'_, B>) -> Self {
         let dims: Vec<(usize, usize, usize)> = s
             .values
+            .levels
             .iter()
-            .map(|v| {
-                let [bv, h, w, _] = v.dims();
-                (bv, h, w)
-            })
+            .map(|&[bv, h, w]| (bv, h, w))
             .collect();
         let (m, p) = s.heads_points();
         Self::new(s.hits, &dims, s.strides, m, p, s.width())
@@ -315,24 +313,11 @@ pub(crate) struct Saved<T> {
     gate: Option<Vec<T>>,
 }
 
-/// The value maps of all levels as one channel-last matrix `[Σ_l B·V·h_l·w_l, D]` (level, image,
-/// row, column order; `D` head-major), the layout of [`SampleLayout`].
-pub(crate) fn value_rows<B: Backend>(values: Vec<Tensor<B, 4>>) -> Tensor<B, 2> {
-    let rows: Vec<Tensor<B, 2>> = values
-        .into_iter()
-        .map(|v| {
-            let [bv, h, w, d] = v.dims();
-            v.reshape([bv * h * w, d])
-        })
-        .collect();
-    Tensor::cat(rows, 0)
-}
-
 /// The float type the host loops can run `s` in: f32 or f64 when the values, offsets and weights
 /// all hold it, else `None`.
 pub(crate) fn host_dtype<B: Backend>(s: &DcaSample<'_, B>) -> Option<DType> {
     let dtype = s.offsets.dtype();
-    let same = s.weights.dtype() == dtype && s.values.iter().all(|v| v.dtype() == dtype);
+    let same = s.weights.dtype() == dtype && s.values.rows.dtype() == dtype;
     (same && matches!(dtype, DType::F32 | DType::F64)).then_some(dtype)
 }
 
@@ -368,7 +353,7 @@ fn sample_host_typed<B: Backend, T: Elem>(s: DcaSample<'_, B>) -> Tensor<B, 2> {
     let gate: Option<Vec<T>> = gate.map(|g| vec(g.into_data().convert::<T>()));
     let off = vec(offsets.into_data());
     let wts = vec(weights.into_data());
-    let values = vec(value_rows(values).into_data());
+    let values = vec(values.rows.into_data());
     let out = layout.forward(&values, &off, &wts, gate.as_deref());
     super::count(|c| c.dca += 1);
     Tensor::from_data(TensorData::new(out, [layout.n, layout.d]), &device)
@@ -413,7 +398,7 @@ where
         ),
     };
     let (values, off, wts, gate) = (
-        to_ad(value_rows(values)),
+        to_ad(values.rows),
         to_ad(offsets),
         to_ad(weights),
         to_ad(gate),

@@ -30,7 +30,7 @@ pub mod host_data;
 pub(crate) mod rows_host;
 
 pub use backend::{linear_bucketed, rows_bucketed, ModelBackend, LAYER_NORM_EPSILON};
-pub use dca::{DcaSample, ViewHits};
+pub use dca::{DcaSample, FeatureRows, ViewHits};
 
 use std::cell::Cell;
 

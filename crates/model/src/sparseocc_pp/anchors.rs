@@ -33,7 +33,7 @@
 use crate::batch::Batch;
 use crate::sparseocc_pp::dca::ViewHits;
 use crate::sparseocc_pp::dca::{
-    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention,
+    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention, FeatureRows,
 };
 use crate::sparseocc_pp::extras::depth_gate::DepthMap;
 use crate::sparseocc_pp::extras::depth_oracle::DepthOracle;
@@ -399,7 +399,7 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
         r: usize,
         coords: Vec<Coord>,
         feats: Tensor<B, 2>,
-        images: &[Tensor<B, 4>],
+        images: &FeatureRows<B>,
         strides: &[usize],
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,
@@ -454,11 +454,12 @@ impl<B: crate::kernels::ModelBackend> AnchorGenerator<B> {
     /// ([`crate::sparseocc_pp::extras::depth_gate`]), or `None` (the paper's DCA).
     ///
     /// # Shapes
-    /// - `images[l]`: `[B·V, C, h_l, w_l]`, `strides[l]` input pixels per feature pixel
+    /// - `images`: the rows of the `[B·V, C, h_l, w_l]` feature maps ([`FeatureRows::from_nchw`]),
+    ///   `strides[l]` input pixels per feature pixel
     /// - returns anchors on `full_dims / 2` with `[N, D]` features
     pub fn forward(
         &self,
-        images: &[Tensor<B, 4>],
+        images: &FeatureRows<B>,
         strides: &[usize],
         batch: &Batch<B>,
         depth: Option<&DepthMap<B>>,

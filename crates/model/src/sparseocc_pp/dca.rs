@@ -34,6 +34,7 @@
 
 use crate::batch::CameraInput;
 use crate::error::ModelError;
+pub use crate::kernels::dca::FeatureRows;
 use crate::kernels::dca::{sample_tensor_ops, DcaSample};
 use crate::kernels::ModelBackend;
 use burn::module::Param;
@@ -184,8 +185,9 @@ pub struct DcaInputs<'a, B: Backend> {
     pub query: Tensor<B, 2>,
     /// Which views see which query ([`project_queries`]).
     pub hits: &'a ViewHits,
-    /// Image features of each level, `[B·V, C, h_l, w_l]`.
-    pub feats: &'a [Tensor<B, 4>],
+    /// Image features of every level as channel-last rows ([`FeatureRows::from_nchw`] of the
+    /// `[B·V, C, h_l, w_l]` maps; laid out once per frame and shared by its DCA blocks).
+    pub feats: &'a FeatureRows<B>,
     /// Input pixels per feature pixel of each level.
     pub strides: &'a [usize],
     /// Per-hit gate `[hits.len()]` on the samples before the average over views (e.g. the depth
@@ -343,22 +345,10 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
             .reshape([n * m, dh, h, w])
     }
 
-    /// The projected value maps of every level, channel-last: `feats[l] [B·V, C, h, w]` →
-    /// `[B·V, h, w, D]` (`D` head-major), the layout of [`DcaSample::values`].
-    fn value_maps(&self, feats: &[Tensor<B, 4>]) -> Vec<Tensor<B, 4>> {
-        feats
-            .iter()
-            .map(|f| {
-                let [bv, c, h, w] = f.dims();
-                let rows = f.clone().permute([0, 2, 3, 1]).reshape([bv * h * w, c]);
-                crate::profile::row_linear(&self.value_proj, rows).reshape([
-                    bv,
-                    h,
-                    w,
-                    self.embed_dim,
-                ])
-            })
-            .collect()
+    /// The projected values of every level: the feature rows `[Σ_l B·V·h_l·w_l, C]` →
+    /// `[Σ_l B·V·h_l·w_l, D]` (`D` head-major), one linear map over all levels at once.
+    fn value_maps(&self, feats: &FeatureRows<B>) -> FeatureRows<B> {
+        feats.map_rows(|rows| crate::profile::row_linear(&self.value_proj, rows))
     }
 
     /// The sampling op's inputs: offsets and weights predicted from the query, values projected.
@@ -366,9 +356,7 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
         let (offsets, weights) = self.sampling(inputs.query);
         crate::profile::trace_mark("dca offsets and weights", &weights);
         let values = self.value_maps(inputs.feats);
-        if let Some(v) = values.last() {
-            crate::profile::trace_mark("dca value maps", v);
-        }
+        crate::profile::trace_mark("dca value maps", &values.rows);
         DcaSample {
             hits: inputs.hits,
             strides: inputs.strides,
@@ -403,20 +391,19 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
                 self.embed_dim, hits.num_queries
             )));
         }
-        if feats.len() != self.num_levels || strides.len() != self.num_levels {
+        if feats.levels.len() != self.num_levels || strides.len() != self.num_levels {
             return Err(ModelError::Input(format!(
                 "DCA: {} feature levels and {} strides given, the block was built for {}",
-                feats.len(),
+                feats.levels.len(),
                 strides.len(),
                 self.num_levels
             )));
         }
-        for (l, (f, &s)) in feats.iter().zip(strides.iter()).enumerate() {
-            let [bv, c, h, w] = f.dims();
+        let c = feats.width();
+        for (l, (&[bv, h, w], &s)) in feats.levels.iter().zip(strides.iter()).enumerate() {
             if bv != hits.num_images || c != self.feat_channels || h == 0 || w == 0 || s == 0 {
                 return Err(ModelError::Input(format!(
-                    "DCA: level {l} features {:?} (stride {s}) do not match {} images x {} channels",
-                    f.dims(),
+                    "DCA: level {l} features [{bv}, {c}, {h}, {w}] (stride {s}) do not match {} images x {} channels",
                     hits.num_images,
                     self.feat_channels
                 )));
@@ -481,7 +468,7 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
         self.aggregate_gated(DcaInputs {
             query,
             hits,
-            feats,
+            feats: &FeatureRows::from_nchw(feats)?,
             strides,
             gate: None,
         })
@@ -505,13 +492,14 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
     /// The full block: `x = LN(feats + W_o·DCA(feats + pos))`, `x = LN(x + FFN(x))`.
     ///
     /// # Shapes
-    /// - feats, pos: `[N, D]`; `images[l]`: `[B·V, C, h_l, w_l]` → `[N, D]`
+    /// - feats, pos: `[N, D]`; `images`: the rows of the `[B·V, C, h_l, w_l]` feature maps
+    ///   ([`FeatureRows::from_nchw`]) → `[N, D]`
     pub fn forward(
         &self,
         feats: Tensor<B, 2>,
         pos: Tensor<B, 2>,
         hits: &ViewHits,
-        images: &[Tensor<B, 4>],
+        images: &FeatureRows<B>,
         strides: &[usize],
     ) -> Result<Tensor<B, 2>, ModelError> {
         self.forward_gated(feats, pos, hits, images, strides, None)
@@ -523,7 +511,7 @@ impl<B: ModelBackend> DeformableCrossAttention<B> {
         feats: Tensor<B, 2>,
         pos: Tensor<B, 2>,
         hits: &ViewHits,
-        images: &[Tensor<B, 4>],
+        images: &FeatureRows<B>,
         strides: &[usize],
         gate: Option<Tensor<B, 1>>,
     ) -> Result<Tensor<B, 2>, ModelError> {
@@ -584,10 +572,11 @@ mod tests {
             views_per_query: vec![2, 1],
             max_per_image: 2,
         };
-        let images = [
+        let images = FeatureRows::from_nchw(&[
             Tensor::<B32, 4>::ones([2, 4, 6, 5], &device),
             Tensor::<B32, 4>::ones([2, 4, 3, 3], &device),
-        ];
+        ])
+        .unwrap();
         let feats = Tensor::<B32, 2>::ones([2, 8], &device);
         crate::profile::enable(true);
         dca.forward(feats.clone(), feats.zeros_like(), &hits, &images, &[4, 8])

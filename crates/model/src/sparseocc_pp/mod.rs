@@ -31,7 +31,7 @@ use crate::sparseocc_pp::anchors::{
     AnchorGenerator, AnchorGeneratorConfig, AnchorMode, LevelPrediction,
 };
 use crate::sparseocc_pp::dca::{
-    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention,
+    project_column_bases, project_queries, DcaConfig, DeformableCrossAttention, FeatureRows,
 };
 use crate::sparseocc_pp::extras::depth_gate::{DepthGate, DepthGateConfig, DepthMap};
 use crate::sparseocc_pp::extras::depth_oracle::DepthOracle;
@@ -420,8 +420,11 @@ impl<B: ModelBackend> SparseOccPP<B> {
         } else {
             None
         };
+        // The image features as channel-last rows, laid out once for every DCA block of the frame.
+        let images = FeatureRows::from_nchw(feats)?;
+        crate::profile::trace_mark("image feature rows", &images.rows);
         let gen = self.anchors.forward(
-            feats,
+            &images,
             strides,
             batch,
             depth.as_ref(),
@@ -475,7 +478,7 @@ impl<B: ModelBackend> SparseOccPP<B> {
         };
         let x = self
             .dca
-            .forward_gated(query, pos.clone(), &hits, feats, strides, gate)?;
+            .forward_gated(query, pos.clone(), &hits, &images, strides, gate)?;
         let x = match &self.base_dca {
             Some(base) => {
                 let hits = project_column_bases(
@@ -485,7 +488,7 @@ impl<B: ModelBackend> SparseOccPP<B> {
                     batch.image_hw(),
                     column_floor_z_m(&batch.grid),
                 )?;
-                base.forward(x, pos, &hits, feats, strides)?
+                base.forward(x, pos, &hits, &images, strides)?
             }
             None => x,
         };

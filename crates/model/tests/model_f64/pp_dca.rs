@@ -8,6 +8,7 @@ use burn::prelude::*;
 use occ_geometry::transform_point;
 use occ_model::sparseocc_pp::dca::{
     project_column_bases, project_queries, DcaConfig, DcaInputs, DeformableCrossAttention,
+    FeatureRows,
 };
 use pp_common::*;
 
@@ -182,10 +183,11 @@ fn dca_host_loop_equals_tensor_ops() {
         );
         let mut outs = Vec::new();
         for g in [None, Some(gate)] {
+            let rows = FeatureRows::from_nchw(&feats).unwrap();
             let inputs = |gate| DcaInputs {
                 query: query.clone(),
                 hits: &hits,
-                feats: &feats,
+                feats: &rows,
                 strides: &STRIDES,
                 gate,
             };
@@ -253,10 +255,11 @@ fn dca_host_autodiff_equals_tensor_ops_with_gradients() {
                 feats0.iter().map(|f| f.clone().require_grad()).collect();
             let query = query0.clone().require_grad();
             let gate = gated.then(|| gate0.clone().require_grad());
+            let rows = FeatureRows::from_nchw(&feats).unwrap();
             let inputs = DcaInputs {
                 query: query.clone(),
                 hits: &hits,
-                feats: &feats,
+                feats: &rows,
                 strides: &STRIDES,
                 gate: gate.clone(),
             };
@@ -317,17 +320,34 @@ fn dca_block_shapes_and_bad_inputs() {
     let feats = features::<NB>(2, 1, &device);
     let f = randn::<NB, 2>([coords.len(), 8], 2, &device);
     let pos = randn::<NB, 2>([coords.len(), 8], 3, &device);
+    let rows = |maps: &[Tensor<NB, 4>]| FeatureRows::from_nchw(maps).unwrap();
     let out = dca
-        .forward(f.clone(), pos.clone(), &hits, &feats, &STRIDES)
+        .forward(f.clone(), pos.clone(), &hits, &rows(&feats), &STRIDES)
         .unwrap();
     assert_eq!(out.dims(), [coords.len(), 8]);
     assert!(to_f64(&out).iter().all(|v| v.is_finite()));
-    // Wrong number of levels, wrong channels, voxel outside the grid, batch index without cameras.
+    // Wrong number of levels, levels that disagree, wrong channels, wrong number of images, voxel
+    // outside the grid, batch index without cameras.
     assert!(dca
-        .forward(f.clone(), pos.clone(), &hits, &feats[..1], &STRIDES[..1])
+        .forward(
+            f.clone(),
+            pos.clone(),
+            &hits,
+            &rows(&feats[..1]),
+            &STRIDES[..1]
+        )
         .is_err());
-    let wrong = vec![feats[0].clone().narrow(1, 0, 4), feats[1].clone()];
-    assert!(dca.forward(f, pos, &hits, &wrong, &STRIDES).is_err());
+    let narrow = |maps: &[Tensor<NB, 4>], dim: usize, len: usize| -> Vec<Tensor<NB, 4>> {
+        maps.iter().map(|m| m.clone().narrow(dim, 0, len)).collect()
+    };
+    assert!(FeatureRows::from_nchw(&[narrow(&feats, 1, 4)[0].clone(), feats[1].clone()]).is_err());
+    assert!(FeatureRows::<NB>::from_nchw(&[]).is_err());
+    let few_channels = rows(&narrow(&feats, 1, 4));
+    assert!(dca
+        .forward(f.clone(), pos.clone(), &hits, &few_channels, &STRIDES)
+        .is_err());
+    let few_images = rows(&narrow(&feats, 0, 2));
+    assert!(dca.forward(f, pos, &hits, &few_images, &STRIDES).is_err());
     assert!(project_queries(&[[0, 32, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
     assert!(project_queries(&[[1, 0, 0, 0]], &g, &cameras(1), IMG_HW).is_err());
     assert!(DcaConfig::new(8, 4).with_num_heads(3).validate().is_err());

@@ -9,7 +9,9 @@ use burn::tensor::Distribution;
 use occ_model::encoder::backbone::ResNetConfig;
 use occ_model::kernels::conv2d_host::{conv_bn, conv_bn_portable};
 use occ_model::kernels::{host_kernel_calls, HostKernelCalls};
-use occ_model::sparseocc_pp::dca::{DcaConfig, DcaInputs, DeformableCrossAttention, ViewHits};
+use occ_model::sparseocc_pp::dca::{
+    DcaConfig, DcaInputs, DeformableCrossAttention, FeatureRows, ViewHits,
+};
 use occ_model::ModelBackend;
 
 /// The calls counted since `before`.
@@ -61,7 +63,7 @@ fn images<B: Backend>(device: &B::Device) -> [Tensor<B, 4>; 2] {
 fn dca_inputs<'a, B: Backend>(
     query: &Tensor<B, 2>,
     hits: &'a ViewHits,
-    images: &'a [Tensor<B, 4>],
+    images: &'a FeatureRows<B>,
 ) -> DcaInputs<'a, B> {
     DcaInputs {
         query: query.clone(),
@@ -84,7 +86,8 @@ pub fn inference_calls<B: ModelBackend>() -> HostKernelCalls {
     let dca = dca::<B>(&device);
     let (hits, images) = (hits(), images::<B>(&device));
     let query = Tensor::<B, 2>::random([2, 8], Distribution::Normal(0.0, 1.0), &device);
-    let inputs = || dca_inputs(&query, &hits, &images);
+    let rows = FeatureRows::from_nchw(&images).unwrap();
+    let inputs = || dca_inputs(&query, &hits, &rows);
 
     // The portable paths, called directly: no host kernel.
     let before = host_kernel_calls();
@@ -124,7 +127,8 @@ pub fn training_calls<B: ModelBackend + AutodiffBackend>() -> HostKernelCalls {
         .map(|t| t.require_grad())
         .collect();
     let query = Tensor::<B, 2>::random([2, 8], Distribution::Normal(0.0, 1.0), &device);
-    let inputs = || dca_inputs(&query, &hits, &images);
+    let rows = FeatureRows::from_nchw(&images).unwrap();
+    let inputs = || dca_inputs(&query, &hits, &rows);
 
     let before = host_kernel_calls();
     conv_bn_portable(&resnet.conv1, Some(&resnet.bn1), x.clone(), true);
