@@ -298,6 +298,8 @@ fn pad_rows<B: SparseConvBackend>(x: Tensor<B, 2>, rows: usize) -> Tensor<B, 2> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    /// The float type of a process's first tensor is the one burn 0.21 keeps for the device, so
+    /// values are read back converted to f64 (every value here is exact in f32).
     type B = burn::backend::NdArray<f64>;
 
     fn ramp(dims: [usize; 4], start: f64) -> Tensor<B, 4> {
@@ -322,6 +324,7 @@ mod tests {
                 .clone()
                 .narrow(0, r, 1)
                 .into_data()
+                .convert::<f64>()
                 .to_vec::<f64>()
         };
         let at = |l: usize, idx: [usize; 4]| {
