@@ -93,18 +93,13 @@ impl<B: Backend> FeatureRows<B> {
     /// # Panics
     /// When the levels disagree on `width`.
     pub fn from_channel_last(maps: Vec<Tensor<B, 4>>) -> Self {
-        let levels = maps.iter().map(|m| {
-            let [bv, h, w, _] = m.dims();
-            [bv, h, w]
-        });
-        let levels = levels.collect();
-        let rows = maps
-            .into_iter()
-            .map(|m| {
-                let [bv, h, w, d] = m.dims();
-                m.reshape([bv * h * w, d])
-            })
-            .collect();
+        let mut levels = Vec::with_capacity(maps.len());
+        let mut rows = Vec::with_capacity(maps.len());
+        for m in maps {
+            let [bv, h, w, d] = m.dims();
+            levels.push([bv, h, w]);
+            rows.push(m.reshape([bv * h * w, d]));
+        }
         Self {
             rows: Tensor::cat(rows, 0),
             levels,
