@@ -31,6 +31,10 @@
 # steps run in the order of what they are needed for: the check, the trace, the SparseOcc++ speed
 # and the three models (the acceptance), then the peers and training.
 #
+# Before the session, `SPARSEOCC_BIN=<the same binary> scripts/cuda_source_check.sh` compiles the
+# project's own CUDA kernels for sm_90a on the CPU machine (NVRTC from PyPI), so that no device
+# time goes to a kernel CUDA cannot compile.
+#
 # Usage: scripts/gpu_check.sh [OUT_DIR]
 # With SPARSEOCC_BIN set, uses that binary (built elsewhere with `--features cuda`, e.g. on a CPU-only
 # machine: CUDARC_CUDA_VERSION=13000 cargo build --release -p sparseocc --features cuda); otherwise

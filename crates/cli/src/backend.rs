@@ -22,13 +22,26 @@ pub type Infer = burn_wgpu::Wgpu;
 /// Training backend.
 pub type Train = Autodiff<Infer>;
 
+/// The float element of the CUDA build ([`Infer`] = `burn_cuda::Cuda`'s default).
+#[cfg(feature = "cuda-source")]
+pub type CudaFloat = f32;
+/// The int element of the CUDA build (indices: kernel maps, DCA layouts).
+#[cfg(feature = "cuda-source")]
+pub type CudaInt = i32;
+
 /// The DCA sampling's `#[cube]` training op (forward and backward kernels) on this build's
 /// backend, whatever `SPARSEOCC_CUBE_DCA` chose for training: what `check-backend` tests it with.
 #[cfg(feature = "cuda")]
 pub fn cube_dca_train(
     s: occ_model::kernels::DcaSample<'_, Train>,
 ) -> burn::tensor::Tensor<Train, 2> {
-    occ_model::kernels::dca_cube::sample_autodiff::<cubecl::cuda::CudaRuntime, f32, i32, u8, _>(s)
+    occ_model::kernels::dca_cube::sample_autodiff::<
+        cubecl::cuda::CudaRuntime,
+        CudaFloat,
+        CudaInt,
+        u8,
+        _,
+    >(s)
 }
 
 /// The DCA sampling's `#[cube]` training op (forward and backward kernels) on this build's

@@ -1,11 +1,13 @@
 //! `sparseocc`: camera images in, a semantic voxel grid out.
 //!
 //! Commands: `demo` (the whole pipeline on built-in synthetic data), `synth`, `prepare`, `train`,
-//! `eval`, `infer`, `bench`, `viz`. Every long command shows progress and writes a JSON summary.
+//! `eval`, `infer`, `bench`, `viz`, and the backend checks `check-backend` and `check-cuda-source`.
+//! Every long command shows progress and writes a JSON summary.
 
 mod backend;
 mod cmd_bench;
 mod cmd_check;
+mod cmd_cuda_source;
 mod cmd_demo;
 mod cmd_eval;
 mod cmd_infer;
@@ -76,6 +78,9 @@ enum Cmd {
     Bench(cmd_bench::BenchArgs),
     /// Check this build's backend (CUDA or WebGPU) against the CPU reference: sparse convs, the encoder, a SparseOcc++ forward pass and training step.
     CheckBackend(cmd_check::CheckArgs),
+    /// Compile this build's CUDA kernels for an H100 (sm_90a) without a GPU: the CUDA C++ cubecl
+    /// generates, then NVRTC when `CUDA_PATH` and libnvrtc are at hand (`--features cuda` builds).
+    CheckCudaSource(cmd_cuda_source::CudaSourceArgs),
     /// Render voxel grids (and camera overlays) to PNG, export PLY; `--nuscenes`: a surround-camera
     /// frame with the LiDAR points and voxels projected into every camera.
     Viz(cmd_viz::VizArgs),
@@ -94,6 +99,7 @@ fn main() {
         Cmd::Infer(a) => cmd_infer::run(a),
         Cmd::Bench(a) => cmd_bench::run(a),
         Cmd::CheckBackend(a) => cmd_check::run(a),
+        Cmd::CheckCudaSource(a) => cmd_cuda_source::run(a),
         Cmd::Eval(a) => cmd_eval::run(a).map(|_| ()),
     };
     if let Err(e) = r {

@@ -477,3 +477,11 @@ fn check_backend_agrees_with_itself_on_the_cpu() {
     let text = ok(&["check-backend"]);
     assert!(text.contains("agrees with the NdArray reference"), "{text}");
 }
+
+/// A CPU build has no CUDA compiler: `check-cuda-source` says how to build one, with status 1.
+#[cfg(not(feature = "cuda-source"))]
+#[test]
+fn check_cuda_source_asks_for_the_cuda_build() {
+    let text = support::fails_status_1(&["check-cuda-source"]);
+    assert!(text.contains("--features cuda"), "{text}");
+}

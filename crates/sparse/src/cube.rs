@@ -1420,3 +1420,133 @@ where
         .into_primitive()
         .tensor())
 }
+
+/// Every configuration of this file's kernels that a CUDA launch can compile, for
+/// `sparseocc check-cuda-source` (crate::cuda_source): each kernel with the element types
+/// `float` / `int` (the backend's), both address types (`address_type_of` picks one by buffer
+/// length), every flag value and the cube shapes its launcher uses (`CubeDim::new` for the
+/// one-unit-per-value kernels, the `TILE x TILE` cubes of the convolution kernels).
+/// This file's text, for `check-cuda-source` to find every launchable kernel declared here in
+/// [`cuda_source_kernels`] (`occ_sparse::cuda_source::launchable_kernels`).
+#[cfg(feature = "cuda-source")]
+pub const KERNEL_SOURCE: &str = include_str!("cube.rs");
+
+#[cfg(feature = "cuda-source")]
+pub fn cuda_source_kernels(
+    client: &cubecl::prelude::ComputeClient<crate::cuda_source::OfflineCuda>,
+    float: cubecl::ir::StorageType,
+    int: cubecl::ir::StorageType,
+) -> Vec<Box<dyn cubecl::prelude::CubeKernel>> {
+    use crate::cuda_source::{elementwise_cube_dims, OfflineCuda};
+    use cubecl::prelude::{AddressType, CubeKernel, KernelSettings, TensorCompilationArg};
+    let t = || TensorCompilationArg { inplace: None };
+    let map_dims = || kernel::MapDimsCompilationArg {
+        ky: (),
+        kz: (),
+        kv: (),
+        sx: (),
+        sy: (),
+        sz: (),
+        px: (),
+        py: (),
+        pz: (),
+        dx: (),
+        dy: (),
+        dz: (),
+        gx: (),
+        gy: (),
+        gz: (),
+        batch: (),
+        ox: (),
+        oy: (),
+        oz: (),
+        n_in: (),
+    };
+    let tile = CubeDim::new_2d(kernel::TILE as u32, kernel::TILE as u32);
+    let mut kernels: Vec<Box<dyn CubeKernel>> = Vec::new();
+    for address in [AddressType::U32, AddressType::U64] {
+        let settings = |dim| {
+            KernelSettings::default()
+                .cube_dim(dim)
+                .address_type(address)
+        };
+        for dim in elementwise_cube_dims(client) {
+            let c = || client.clone();
+            kernels.push(Box::new(kernel::segment_sum_kernel::SegmentSumKernel::<
+                OfflineCuda,
+            >::new(
+                settings(dim),
+                c(),
+                t(),
+                t(),
+                t(),
+                t(),
+                (),
+                [float, int],
+            )));
+            kernels.push(Box::new(kernel::pad_rows_kernel::PadRowsKernel::<
+                OfflineCuda,
+            >::new(
+                settings(dim), c(), t(), t(), float
+            )));
+            kernels.push(Box::new(kernel::sum_partials_kernel::SumPartialsKernel::<
+                OfflineCuda,
+            >::new(
+                settings(dim), c(), t(), t(), (), float
+            )));
+            kernels.push(Box::new(kernel::site_grid_kernel::SiteGridKernel::<
+                OfflineCuda,
+            >::new(
+                settings(dim), c(), t(), t(), map_dims(), int
+            )));
+            for forward in [false, true] {
+                kernels.push(Box::new(kernel::gather_table_kernel::GatherTableKernel::<
+                    OfflineCuda,
+                >::new(
+                    settings(dim),
+                    c(),
+                    t(),
+                    t(),
+                    t(),
+                    map_dims(),
+                    forward,
+                    int,
+                )));
+            }
+        }
+        kernels.push(Box::new(kernel::sparse_conv_kernel::SparseConvKernel::<
+            OfflineCuda,
+        >::new(
+            settings(tile),
+            client.clone(),
+            t(),
+            t(),
+            t(),
+            t(),
+            (),
+            (),
+            (),
+            (),
+            (),
+            [float, int],
+        )));
+        kernels.push(Box::new(
+            kernel::sparse_conv_weight_grad_kernel::SparseConvWeightGradKernel::<OfflineCuda>::new(
+                settings(tile),
+                client.clone(),
+                t(),
+                t(),
+                t(),
+                t(),
+                (),
+                (),
+                (),
+                (),
+                (),
+                (),
+                [float, int],
+            ),
+        ));
+    }
+    kernels
+}

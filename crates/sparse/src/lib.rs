@@ -15,6 +15,8 @@ pub mod conv;
 pub mod coords;
 #[cfg(feature = "cube")]
 pub mod cube;
+#[cfg(feature = "cuda-source")]
+pub mod cuda_source;
 pub mod error;
 pub mod flops;
 mod fused;
