@@ -217,19 +217,23 @@ pub fn offline_client() -> ComputeClient<OfflineCuda> {
     OfflineCuda::client(&OfflineDevice)
 }
 
+/// The options of cubecl-cuda's compiler.
+pub type CudaOptions = <CudaCompiler as Compiler>::CompilationOptions;
+
 /// The compilation options cubecl-cuda 0.10 sets for an sm_90 device (`runtime.rs`: fast math,
 /// a 32-wide plane, grid constants from sm_70, fast tanh from sm_75 with CUDA 12.8+, clusters
 /// and `elect.sync` from sm_90).
-pub fn sm90_options() -> <CudaCompiler as Compiler>::CompilationOptions {
-    let mut options: <CudaCompiler as Compiler>::CompilationOptions = Default::default();
-    options.warp_size = 32;
-    let features = &mut options.supports_features;
+pub fn sm90_options() -> CudaOptions {
+    let mut features = CudaOptions::default().supports_features;
     features.fast_math = true;
     features.grid_constants = true;
     features.fast_tanh = cudarc::driver::sys::CUDA_VERSION >= 12080;
     features.clusters = true;
     features.elect_sync = true;
-    options
+    CudaOptions {
+        warp_size: 32,
+        supports_features: features,
+    }
 }
 
 /// One kernel configuration's CUDA C++, as cubecl-cuda would hand it to NVRTC.
