@@ -245,7 +245,7 @@ pub struct KernelSource {
     pub cube_dim: CubeDim,
     /// The index type: 32- or 64-bit addressing.
     pub address_type: StorageType,
-    /// Static shared memory of one cube, bytes.
+    /// Shared memory of one cube, bytes (cubecl-cuda declares it as dynamic shared memory).
     pub shared_bytes: usize,
     /// The CUDA C++ source.
     pub source: String,
