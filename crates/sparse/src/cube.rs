@@ -1421,26 +1421,27 @@ where
         .tensor())
 }
 
-/// Every configuration of this file's kernels that a CUDA launch can compile, for
-/// `sparseocc check-cuda-source` (crate::cuda_source): each kernel with the element types
-/// `float` / `int` (the backend's), both address types (`address_type_of` picks one by buffer
-/// length), every flag value and the cube shapes its launcher uses (`CubeDim::new` for the
-/// one-unit-per-value kernels, the `TILE x TILE` cubes of the convolution kernels).
 /// This file's text, for `check-cuda-source` to find every launchable kernel declared here in
 /// [`cuda_source_kernels`] (`occ_sparse::cuda_source::launchable_kernels`).
 #[cfg(feature = "cuda-source")]
 pub const KERNEL_SOURCE: &str = include_str!("cube.rs");
 
+/// Every configuration of this file's kernels that a CUDA launch can compile, for
+/// `sparseocc check-cuda-source` (crate::cuda_source): each kernel with the element types
+/// `float` / `int` (the backend's), both address types (`address_type_of` picks one by buffer
+/// length), every flag value and the cube shapes its launcher uses (`CubeDim::new` for the
+/// one-unit-per-value kernels, the `TILE x TILE` cubes of the convolution kernels).
 #[cfg(feature = "cuda-source")]
 pub fn cuda_source_kernels(
     client: &cubecl::prelude::ComputeClient<crate::cuda_source::OfflineCuda>,
     float: cubecl::ir::StorageType,
     int: cubecl::ir::StorageType,
 ) -> Vec<Box<dyn cubecl::prelude::CubeKernel>> {
-    use crate::cuda_source::{elementwise_cube_dims, OfflineCuda};
-    use cubecl::prelude::{AddressType, CubeKernel, KernelSettings, TensorCompilationArg};
+    use crate::cuda_source::{elementwise_cube_dims, launch_settings, OfflineCuda as R};
+    use cubecl::prelude::{CubeKernel, TensorCompilationArg};
+    use kernel::*;
     let t = || TensorCompilationArg { inplace: None };
-    let map_dims = || kernel::MapDimsCompilationArg {
+    let map = || MapDimsCompilationArg {
         ky: (),
         kz: (),
         kv: (),
@@ -1462,91 +1463,91 @@ pub fn cuda_source_kernels(
         oz: (),
         n_in: (),
     };
-    let tile = CubeDim::new_2d(kernel::TILE as u32, kernel::TILE as u32);
-    let mut kernels: Vec<Box<dyn CubeKernel>> = Vec::new();
-    for address in [AddressType::U32, AddressType::U64] {
-        let settings = |dim| {
-            KernelSettings::default()
-                .cube_dim(dim)
-                .address_type(address)
-        };
-        for dim in elementwise_cube_dims(client) {
-            let c = || client.clone();
-            kernels.push(Box::new(kernel::segment_sum_kernel::SegmentSumKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim),
+    let c = || client.clone();
+    let ft = [float, int];
+    let mut k: Vec<Box<dyn CubeKernel>> = Vec::new();
+    for s in launch_settings(&elementwise_cube_dims(client)) {
+        let s = || s.clone();
+        k.push(Box::new(segment_sum_kernel::SegmentSumKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            t(),
+            t(),
+            (),
+            ft,
+        )));
+        k.push(Box::new(pad_rows_kernel::PadRowsKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            float,
+        )));
+        k.push(Box::new(sum_partials_kernel::SumPartialsKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            (),
+            float,
+        )));
+        k.push(Box::new(site_grid_kernel::SiteGridKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            map(),
+            int,
+        )));
+        for forward in [false, true] {
+            k.push(Box::new(gather_table_kernel::GatherTableKernel::<R>::new(
+                s(),
+                c(),
+                t(),
+                t(),
+                t(),
+                map(),
+                forward,
+                int,
+            )));
+        }
+    }
+    let tile = CubeDim::new_2d(TILE as u32, TILE as u32);
+    for s in launch_settings(&[tile]) {
+        let s = || s.clone();
+        k.push(Box::new(sparse_conv_kernel::SparseConvKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            t(),
+            t(),
+            (),
+            (),
+            (),
+            (),
+            (),
+            ft,
+        )));
+        k.push(Box::new(
+            sparse_conv_weight_grad_kernel::SparseConvWeightGradKernel::<R>::new(
+                s(),
                 c(),
                 t(),
                 t(),
                 t(),
                 t(),
                 (),
-                [float, int],
-            )));
-            kernels.push(Box::new(kernel::pad_rows_kernel::PadRowsKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim), c(), t(), t(), float
-            )));
-            kernels.push(Box::new(kernel::sum_partials_kernel::SumPartialsKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim), c(), t(), t(), (), float
-            )));
-            kernels.push(Box::new(kernel::site_grid_kernel::SiteGridKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim), c(), t(), t(), map_dims(), int
-            )));
-            for forward in [false, true] {
-                kernels.push(Box::new(kernel::gather_table_kernel::GatherTableKernel::<
-                    OfflineCuda,
-                >::new(
-                    settings(dim),
-                    c(),
-                    t(),
-                    t(),
-                    t(),
-                    map_dims(),
-                    forward,
-                    int,
-                )));
-            }
-        }
-        kernels.push(Box::new(kernel::sparse_conv_kernel::SparseConvKernel::<
-            OfflineCuda,
-        >::new(
-            settings(tile),
-            client.clone(),
-            t(),
-            t(),
-            t(),
-            t(),
-            (),
-            (),
-            (),
-            (),
-            (),
-            [float, int],
-        )));
-        kernels.push(Box::new(
-            kernel::sparse_conv_weight_grad_kernel::SparseConvWeightGradKernel::<OfflineCuda>::new(
-                settings(tile),
-                client.clone(),
-                t(),
-                t(),
-                t(),
-                t(),
                 (),
                 (),
                 (),
                 (),
                 (),
-                (),
-                [float, int],
+                ft,
             ),
         ));
     }
-    kernels
+    k
 }

@@ -26,6 +26,7 @@ use cubecl::server::{
     ServerCommunication, ServerError, ServerUtilities,
 };
 use cubecl::{Compiler, CubeDim, CubeTask};
+use cubecl_common::backtrace::BackTrace;
 use cubecl_common::bytes::Bytes;
 use cubecl_common::device::{Device, DeviceId, DeviceService, ServerUtilitiesHandle};
 use cubecl_common::future::DynFut;
@@ -60,8 +61,9 @@ impl Device for OfflineDevice {
     }
 }
 
-/// The server of [`OfflineCuda`]: holds the device properties; allocating, moving data and
-/// launching are refused (a kernel is only ever defined and compiled here, never run).
+/// The server of [`OfflineCuda`]: holds the device properties; allocating, moving data,
+/// profiling and launching are refused (a kernel is only ever defined and compiled here, never
+/// run): with an error where the trait has one, with a panic naming the request where it has none.
 #[derive(Debug)]
 pub struct OfflineServer {
     utilities: Arc<ServerUtilities<Self>>,
@@ -112,7 +114,18 @@ impl DeviceService for OfflineServer {
     }
 }
 
-const OFFLINE: &str = "the offline CUDA runtime only defines and compiles kernels";
+/// Why the offline server turns a request down: it has no device memory and runs nothing.
+fn refusal(what: &str) -> String {
+    format!("the offline CUDA runtime only defines and compiles kernels; it cannot {what}")
+}
+
+/// The error of a refused request that can return one.
+fn refused(what: &str) -> ServerError {
+    ServerError::Generic {
+        reason: refusal(what),
+        backtrace: BackTrace::capture(),
+    }
+}
 
 impl ComputeServer for OfflineServer {
     type Kernel = Box<dyn CubeTask<CudaCompiler>>;
@@ -120,8 +133,10 @@ impl ComputeServer for OfflineServer {
     type MemoryLayoutPolicy = ContiguousMemoryLayoutPolicy;
     type Storage = BytesStorage;
 
+    /// Refused with a panic (the trait gives no error path): a tensor on this runtime would hold
+    /// no data, and `cuda_source` never makes one.
     fn initialize_memory(&mut self, _: ManagedMemoryHandle, _: u64, _: StreamId) {
-        unimplemented!("{OFFLINE}")
+        panic!("{}", refusal("allocate memory"))
     }
     fn logger(&self) -> Arc<ServerLogger> {
         self.utilities.logger.clone()
@@ -134,10 +149,12 @@ impl ComputeServer for OfflineServer {
         _: Vec<CopyDescriptor>,
         _: StreamId,
     ) -> DynFut<Result<Vec<Bytes>, ServerError>> {
-        unimplemented!("{OFFLINE}")
+        let error = refused("read device memory");
+        Box::pin(async move { Err(error) })
     }
+    /// Refused with a panic (no error path; dropping the data silently would be worse).
     fn write(&mut self, _: Vec<(CopyDescriptor, Bytes)>, _: StreamId) {
-        unimplemented!("{OFFLINE}")
+        panic!("{}", refusal("write device memory"))
     }
     fn sync(&mut self, _: StreamId) -> DynFut<Result<(), ServerError>> {
         Box::pin(async { Ok(()) })
@@ -147,7 +164,7 @@ impl ComputeServer for OfflineServer {
         _: Binding,
         _: StreamId,
     ) -> Result<ManagedResource<BytesResource>, ServerError> {
-        unimplemented!("{OFFLINE}")
+        Err(refused("hand out device memory"))
     }
     unsafe fn launch(
         &mut self,
@@ -157,24 +174,34 @@ impl ComputeServer for OfflineServer {
         _: ExecutionMode,
         _: StreamId,
     ) {
-        unimplemented!("{OFFLINE}")
+        // No error path, and a launch that silently did nothing would pass for one that ran.
+        panic!("{}", refusal("run a kernel (use `cuda_source`)"))
     }
     fn flush(&mut self, _: StreamId) -> Result<(), ServerError> {
         Ok(())
     }
+    /// Nothing is ever allocated here.
     fn memory_usage(&mut self, _: StreamId) -> Result<MemoryUsage, ServerError> {
-        unimplemented!("{OFFLINE}")
+        Ok(MemoryUsage {
+            number_allocs: 0,
+            bytes_in_use: 0,
+            bytes_padding: 0,
+            bytes_reserved: 0,
+        })
     }
     fn memory_cleanup(&mut self, _: StreamId) {}
     fn start_profile(&mut self, _: StreamId) -> Result<ProfilingToken, ServerError> {
-        unimplemented!("{OFFLINE}")
+        Err(refused("profile"))
     }
     fn end_profile(
         &mut self,
         _: StreamId,
         _: ProfilingToken,
     ) -> Result<ProfileDuration, ProfileError> {
-        unimplemented!("{OFFLINE}")
+        Err(ProfileError::Unknown {
+            reason: refusal("profile"),
+            backtrace: BackTrace::capture(),
+        })
     }
     fn allocation_mode(&mut self, _: MemoryAllocationMode, _: StreamId) {}
 }
@@ -297,6 +324,21 @@ pub fn elementwise_cube_dims<R: Runtime>(client: &ComputeClient<R>) -> Vec<CubeD
         }
     }
     dims
+}
+
+/// The launch settings of a kernel with each of `dims`, under 32- and 64-bit addressing (the
+/// launchers pick one by buffer length: `cube::address_type_of`).
+pub fn launch_settings(dims: &[CubeDim]) -> Vec<KernelSettings> {
+    [AddressType::U32, AddressType::U64]
+        .into_iter()
+        .flat_map(|address| {
+            dims.iter().map(move |&dim| {
+                KernelSettings::default()
+                    .cube_dim(dim)
+                    .address_type(address)
+            })
+        })
+        .collect()
 }
 
 /// The names of the launchable kernels (`#[cube(launch...)]` functions) declared in a Rust source

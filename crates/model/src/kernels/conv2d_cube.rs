@@ -631,23 +631,24 @@ where
     }
 }
 
-/// Every configuration of this file's kernels that a CUDA launch can compile, for
-/// `sparseocc check-cuda-source` (`occ_sparse::cuda_source`): each kernel with the backend's
-/// float type, both address types and the cube shapes `CubeDim::new` gives one unit per value.
 /// This file's text, for `check-cuda-source` to find every launchable kernel declared here in
 /// [`cuda_source_kernels`] (`occ_sparse::cuda_source::launchable_kernels`).
 #[cfg(feature = "cuda-source")]
 pub const KERNEL_SOURCE: &str = include_str!("conv2d_cube.rs");
 
+/// Every configuration of this file's kernels that a CUDA launch can compile, for
+/// `sparseocc check-cuda-source` (`occ_sparse::cuda_source`): each kernel with the backend's
+/// float type, both address types and the cube shapes `CubeDim::new` gives one unit per value.
 #[cfg(feature = "cuda-source")]
 pub fn cuda_source_kernels(
     client: &cubecl::prelude::ComputeClient<occ_sparse::cuda_source::OfflineCuda>,
     float: cubecl::ir::StorageType,
 ) -> Vec<Box<dyn cubecl::prelude::CubeKernel>> {
-    use cubecl::prelude::{CubeKernel, KernelSettings, TensorCompilationArg};
-    use occ_sparse::cuda_source::{elementwise_cube_dims, OfflineCuda};
+    use cubecl::prelude::{CubeKernel, TensorCompilationArg};
+    use kernel::*;
+    use occ_sparse::cuda_source::{elementwise_cube_dims, launch_settings, OfflineCuda as R};
     let t = || TensorCompilationArg { inplace: None };
-    let dims = || kernel::Im2colDimsCompilationArg {
+    let dims = || Im2colDimsCompilationArg {
         n: (),
         c: (),
         h: (),
@@ -665,35 +666,24 @@ pub fn cuda_source_kernels(
         l0: (),
         lc: (),
     };
-    let mut kernels: Vec<Box<dyn CubeKernel>> = Vec::new();
-    for address in [AddressType::U32, AddressType::U64] {
-        for dim in elementwise_cube_dims(client) {
-            let settings = || {
-                KernelSettings::default()
-                    .cube_dim(dim)
-                    .address_type(address)
-            };
-            kernels.push(Box::new(
-                kernel::im2col_kernel::Im2colKernel::<OfflineCuda>::new(
-                    settings(),
-                    client.clone(),
-                    t(),
-                    t(),
-                    dims(),
-                    float,
-                ),
-            ));
-            kernels.push(Box::new(
-                kernel::col2im_kernel::Col2imKernel::<OfflineCuda>::new(
-                    settings(),
-                    client.clone(),
-                    t(),
-                    t(),
-                    dims(),
-                    float,
-                ),
-            ));
-        }
+    let mut k: Vec<Box<dyn CubeKernel>> = Vec::new();
+    for s in launch_settings(&elementwise_cube_dims(client)) {
+        k.push(Box::new(im2col_kernel::Im2colKernel::<R>::new(
+            s.clone(),
+            client.clone(),
+            t(),
+            t(),
+            dims(),
+            float,
+        )));
+        k.push(Box::new(col2im_kernel::Col2imKernel::<R>::new(
+            s,
+            client.clone(),
+            t(),
+            t(),
+            dims(),
+            float,
+        )));
     }
-    kernels
+    k
 }

@@ -934,26 +934,27 @@ where
     }
 }
 
-/// Every configuration of this file's kernels that a CUDA launch can compile, for
-/// `sparseocc check-cuda-source` (`occ_sparse::cuda_source`): each kernel with the backend's
-/// element types `float` / `int`, both address types, both passes of the bucket fill, and the
-/// cube shapes of its launcher (`CubeDim::new` for one unit per value, one `SCAN_UNITS` cube for
-/// the scan).
 /// This file's text, for `check-cuda-source` to find every launchable kernel declared here in
 /// [`cuda_source_kernels`] (`occ_sparse::cuda_source::launchable_kernels`).
 #[cfg(feature = "cuda-source")]
 pub const KERNEL_SOURCE: &str = include_str!("dca_cube.rs");
 
+/// Every configuration of this file's kernels that a CUDA launch can compile, for
+/// `sparseocc check-cuda-source` (`occ_sparse::cuda_source`): each kernel with the backend's
+/// element types `float` / `int`, both address types, both passes of the bucket fill, and the
+/// cube shapes of its launcher (`CubeDim::new` for one unit per value, one `SCAN_UNITS` cube for
+/// the scan).
 #[cfg(feature = "cuda-source")]
 pub fn cuda_source_kernels(
     client: &cubecl::prelude::ComputeClient<occ_sparse::cuda_source::OfflineCuda>,
     float: cubecl::ir::StorageType,
     int: cubecl::ir::StorageType,
 ) -> Vec<Box<dyn cubecl::prelude::CubeKernel>> {
-    use cubecl::prelude::{AddressType, CubeKernel, KernelSettings, TensorCompilationArg};
-    use occ_sparse::cuda_source::{elementwise_cube_dims, OfflineCuda};
+    use cubecl::prelude::{CubeKernel, TensorCompilationArg};
+    use kernel::*;
+    use occ_sparse::cuda_source::{elementwise_cube_dims, launch_settings, OfflineCuda as R};
     let t = || TensorCompilationArg { inplace: None };
-    let dims = || kernel::DcaDimsCompilationArg {
+    let dims = || DcaDimsCompilationArg {
         n: (),
         d: (),
         dh: (),
@@ -962,20 +963,55 @@ pub fn cuda_source_kernels(
         p: (),
         hits: (),
     };
-    let types = [float, int];
-    let mut kernels: Vec<Box<dyn CubeKernel>> = Vec::new();
-    for address in [AddressType::U32, AddressType::U64] {
-        let settings = |dim| {
-            KernelSettings::default()
-                .cube_dim(dim)
-                .address_type(address)
-        };
-        for dim in elementwise_cube_dims(client) {
-            let c = || client.clone();
-            kernels.push(Box::new(kernel::dca_forward_kernel::DcaForwardKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim),
+    let c = || client.clone();
+    let ft = [float, int];
+    let mut k: Vec<Box<dyn CubeKernel>> = Vec::new();
+    for s in launch_settings(&elementwise_cube_dims(client)) {
+        let s = || s.clone();
+        k.push(Box::new(dca_forward_kernel::DcaForwardKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            dims(),
+            ft,
+        )));
+        k.push(Box::new(dca_tap_grad_kernel::DcaTapGradKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            dims(),
+            ft,
+        )));
+        k.push(Box::new(dca_gate_grad_kernel::DcaGateGradKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            t(),
+            dims(),
+            ft,
+        )));
+        for fill in [false, true] {
+            k.push(Box::new(dca_bucket_kernel::DcaBucketKernel::<R>::new(
+                s(),
                 c(),
                 t(),
                 t(),
@@ -983,92 +1019,45 @@ pub fn cuda_source_kernels(
                 t(),
                 t(),
                 t(),
-                t(),
                 dims(),
-                types,
+                fill,
+                ft,
             )));
-            kernels.push(Box::new(kernel::dca_tap_grad_kernel::DcaTapGradKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim),
-                c(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                dims(),
-                types,
-            )));
-            kernels.push(Box::new(kernel::dca_gate_grad_kernel::DcaGateGradKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim),
-                c(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                t(),
-                dims(),
-                types,
-            )));
-            for fill in [false, true] {
-                kernels.push(Box::new(kernel::dca_bucket_kernel::DcaBucketKernel::<
-                    OfflineCuda,
-                >::new(
-                    settings(dim),
-                    c(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    dims(),
-                    fill,
-                    types,
-                )));
-            }
-            kernels.push(Box::new(kernel::dca_sort_kernel::DcaSortKernel::<
-                OfflineCuda,
-            >::new(
-                settings(dim), c(), t(), t(), ()
-            )));
-            kernels.push(Box::new(
-                kernel::dca_value_grad_kernel::DcaValueGradKernel::<OfflineCuda>::new(
-                    settings(dim),
-                    c(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    t(),
-                    (),
-                    dims(),
-                    types,
-                ),
-            ));
         }
-        kernels.push(Box::new(kernel::dca_scan_kernel::DcaScanKernel::<
-            OfflineCuda,
-        >::new(
-            settings(CubeDim::new_1d(kernel::SCAN_UNITS as u32)),
-            client.clone(),
+        k.push(Box::new(dca_sort_kernel::DcaSortKernel::<R>::new(
+            s(),
+            c(),
+            t(),
+            t(),
+            (),
+        )));
+        k.push(Box::new(
+            dca_value_grad_kernel::DcaValueGradKernel::<R>::new(
+                s(),
+                c(),
+                t(),
+                t(),
+                t(),
+                t(),
+                t(),
+                t(),
+                t(),
+                t(),
+                t(),
+                (),
+                dims(),
+                ft,
+            ),
+        ));
+    }
+    for s in launch_settings(&[CubeDim::new_1d(SCAN_UNITS as u32)]) {
+        k.push(Box::new(dca_scan_kernel::DcaScanKernel::<R>::new(
+            s,
+            c(),
             t(),
             t(),
             (),
         )));
     }
-    kernels
+    k
 }
