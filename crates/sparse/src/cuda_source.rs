@@ -493,6 +493,29 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_offline_server_answers_what_it_cannot_do_with_an_error() {
+        let client = offline_client();
+        let usage = client
+            .memory_usage()
+            .expect("memory usage of the offline server");
+        assert_eq!(
+            (
+                usage.number_allocs,
+                usage.bytes_in_use,
+                usage.bytes_reserved
+            ),
+            (0, 0, 0)
+        );
+        let Err(error) = client.profile(|| (), "nothing") else {
+            panic!("profiling on the offline server must fail");
+        };
+        assert!(
+            format!("{error:?}").contains("cannot profile"),
+            "the error names the refused request: {error:?}"
+        );
+    }
+
+    #[test]
     fn the_offline_device_is_an_sm90_with_32_wide_planes() {
         let client = offline_client();
         let dims: Vec<(u32, u32, u32)> = elementwise_cube_dims(&client)
