@@ -1,8 +1,9 @@
 """Writes the JPEG decoder fixtures of crates/data/tests/image_jpeg.rs (run once; needs Pillow).
 
-Two 48x32 JPEGs of the same smooth colour pattern, encoded by libjpeg through Pillow: `pattern_444.jpg`
-(quality 95, no chroma subsampling) and `pattern_420.jpg` (quality 90, 4:2:0 like nuScenes camera
-images), each with libjpeg's own RGB decoding next to it as raw bytes (`*.rgb`, row-major, 3 bytes per
+Three 48x32 JPEGs of the same smooth colour pattern, encoded by libjpeg through Pillow: `pattern_444.jpg`
+(quality 95, no chroma subsampling), `pattern_420.jpg` (quality 90, 4:2:0 like nuScenes camera
+images) and `pattern_420_progressive.jpg` (the same, progressive: several scans with tables between
+them), each with libjpeg's own RGB decoding next to it as raw bytes (`*.rgb`, row-major, 3 bytes per
 pixel), the reference the Rust decoder is compared with.
 
     python scripts/make_jpeg_fixture.py crates/data/tests/data
@@ -27,9 +28,13 @@ img.putdata(
         for x in range(w)
     ]
 )
-for name, quality, subsampling in [("pattern_444", 95, 0), ("pattern_420", 90, 2)]:
+for name, quality, subsampling, progressive in [
+    ("pattern_444", 95, 0, False),
+    ("pattern_420", 90, 2, False),
+    ("pattern_420_progressive", 90, 2, True),
+]:
     jpg = out / f"{name}.jpg"
-    img.save(jpg, "JPEG", quality=quality, subsampling=subsampling)
+    img.save(jpg, "JPEG", quality=quality, subsampling=subsampling, progressive=progressive)
     decoded = Image.open(jpg).convert("RGB")
     (out / f"{name}.rgb").write_bytes(decoded.tobytes())
     print(jpg, jpg.stat().st_size, "bytes")

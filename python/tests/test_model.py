@@ -65,3 +65,8 @@ def test_model_errors(tmp_path, tiny_run, kitti_data):
         model.predict_frame(kitti_data, "08", "999999")
     with pytest.raises(sparseocc.SparseOccError, match="no such file|not found"):
         sparseocc.read_image(tmp_path / "none.png")
+    # An image cut short is refused, not decoded with a grey remainder.
+    whole = (kitti_data / "sequences" / "08" / "image_2" / "000000.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(sparseocc.SparseOccError, match="cut.png.*truncated"):
+        sparseocc.read_image(tmp_path / "cut.png")

@@ -42,7 +42,7 @@ pub struct InferArgs {
     /// config's val_sequences.
     #[arg(long, value_delimiter = ',')]
     pub sequences: Option<Vec<String>>,
-    /// A single camera image (PNG), with --calib.
+    /// A single camera image (PNG or JPEG), with --calib.
     #[arg(long)]
     pub image: Option<PathBuf>,
     /// KITTI-format calibration (P2 and Tr lines) of --image.

@@ -25,7 +25,7 @@ pub struct VizArgs {
     /// cameras instead of --labels.
     #[arg(long)]
     pub pred: Option<PathBuf>,
-    /// Camera image (PNG) for an overlay panel; needs --calib.
+    /// Camera image (PNG or JPEG) for an overlay panel; needs --calib.
     #[arg(long, requires = "calib", conflicts_with = "nuscenes")]
     pub image: Option<PathBuf>,
     /// SemanticKITTI calib.txt (P2, Tr) of the image.

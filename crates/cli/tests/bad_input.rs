@@ -186,6 +186,19 @@ fn bad_input_table() {
     let trunc = data_trunc.join("sequences/08/voxels/000000.label");
     let full = std::fs::read(&trunc).unwrap();
     std::fs::write(&trunc, &full[..full.len() - 100]).unwrap();
+    // A validation frame whose image is cut short (an interrupted copy), and a JPEG cut in half:
+    // both refused from the file's structure, before a pixel is decoded.
+    let data_cut_img = root.join("data_cut_img");
+    copy_dir(&data, &data_cut_img);
+    let cut_img = data_cut_img.join("sequences/08/image_2/000000.png");
+    let full_img = std::fs::read(&cut_img).unwrap();
+    std::fs::write(&cut_img, &full_img[..full_img.len() * 2 / 3]).unwrap();
+    let jpeg = std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/tests/data/pattern_420.jpg"),
+    )
+    .unwrap();
+    let cut_jpeg = root.join("cut.jpg");
+    std::fs::write(&cut_jpeg, &jpeg[..jpeg.len() / 2]).unwrap();
     // Ground truth with ids outside the learning map, and a ground truth that is a folder.
     let gt_unknown = root.join("gt_unknown");
     copy_dir(&data, &gt_unknown);
@@ -484,6 +497,31 @@ fn bad_input_table() {
             want: vec![s("08/voxels/000000.label"), s("bytes")],
             absent: vec![out.join("t_trunc")],
         },
+        Case {
+            name: "train with a truncated validation image",
+            args: os(&[
+                &"train",
+                &"--config",
+                &cfg,
+                &"--data",
+                &data_cut_img,
+                &"--out",
+                &out.join("t_cut_img"),
+                &"--sequences",
+                &"00",
+                &"--val-sequences",
+                &"08",
+            ]),
+            status: 1,
+            want: vec![s("08/image_2/000000.png"), s("truncated")],
+            absent: vec![out.join("t_cut_img")],
+        },
+        infer_img(
+            "infer --image with a JPEG cut in half",
+            &cut_jpeg,
+            vec![s("cut.jpg"), s("truncated")],
+            "i9",
+        ),
         infer_data(
             "infer --data with a truncated label",
             &data_trunc,

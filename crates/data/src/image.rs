@@ -61,8 +61,109 @@ pub fn check_image_size(path: &Path, width: usize, height: usize) -> Result<(), 
     }
 }
 
+/// Checks that a PNG or JPEG file is whole, from its structure alone (nothing decoded): a PNG's
+/// chunks, each of the length it declares, up to its `IEND` chunk; a JPEG's segments and
+/// entropy-coded scans up to its end-of-image marker (`FFD9`). Bytes after that end are allowed.
+///
+/// A file cut short (an interrupted download or copy) fails here with an error naming it. This
+/// matters most for JPEG: the decoder, like browsers, fills a scan that ends early with grey and
+/// reports success, so a truncated camera image would otherwise train or predict silently.
+pub fn check_image_complete(bytes: &[u8], path: &Path) -> Result<(), DataError> {
+    let (kind, end) = if bytes.starts_with(&[0xFF, 0xD8]) {
+        ("JPEG", jpeg_end(bytes))
+    } else if bytes.starts_with(PNG_SIGNATURE) {
+        ("PNG", png_end(bytes))
+    } else {
+        // Neither: the decoders name what is wrong.
+        return Ok(());
+    };
+    match end {
+        Some(_) => Ok(()),
+        None => Err(DataError::Image {
+            path: path.to_path_buf(),
+            detail: format!(
+                "truncated: the {kind} file ({} bytes) ends before its end-of-image {}",
+                bytes.len(),
+                if kind == "PNG" {
+                    "chunk (IEND)"
+                } else {
+                    "marker (FFD9)"
+                }
+            ),
+        }),
+    }
+}
+
+const PNG_SIGNATURE: &[u8] = &[0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
+
+/// The offset just after a PNG's `IEND` chunk, walking the chunks by their declared lengths;
+/// `None` when the file ends first.
+fn png_end(bytes: &[u8]) -> Option<usize> {
+    let mut at = PNG_SIGNATURE.len();
+    loop {
+        let len = u32::from_be_bytes(bytes.get(at..at + 4)?.try_into().ok()?) as usize;
+        let kind = bytes.get(at + 4..at + 8)?;
+        // Length, type, data, CRC.
+        let next = at.checked_add(12)?.checked_add(len)?;
+        if next > bytes.len() {
+            return None;
+        }
+        if kind == b"IEND" {
+            return Some(next);
+        }
+        at = next;
+    }
+}
+
+/// The offset just after a JPEG's end-of-image marker: marker segments are skipped by their
+/// declared lengths, entropy-coded data (after each start-of-scan) up to the next marker, which
+/// there is any `FF` not followed by a stuffed `00` or a restart marker `D0`-`D7`. Stray bytes
+/// between segments are skipped, as decoders do. `None` when the file ends first.
+fn jpeg_end(bytes: &[u8]) -> Option<usize> {
+    let mut at = 2;
+    loop {
+        // Find the next marker: `FF` (any number of fill `FF`s) then the marker code.
+        at += next_ff(bytes.get(at..)?)?;
+        while *bytes.get(at)? == 0xFF {
+            at += 1;
+        }
+        let code = *bytes.get(at)?;
+        at += 1;
+        match code {
+            0xD9 => return Some(at),
+            // Standalone markers: restart, TEM, a stray SOI.
+            0xD0..=0xD8 | 0x01 => {}
+            // A stuffed 00 outside a scan: not a marker.
+            0x00 => {}
+            _ => {
+                let len = u16::from_be_bytes([*bytes.get(at)?, *bytes.get(at + 1)?]) as usize;
+                at = at.checked_add(len)?;
+                if at > bytes.len() {
+                    return None;
+                }
+                if code == 0xDA {
+                    // Entropy-coded data up to the next real marker.
+                    loop {
+                        at += next_ff(bytes.get(at..)?)?;
+                        match *bytes.get(at + 1)? {
+                            0x00 | 0xD0..=0xD7 | 0xFF => at += 1,
+                            _ => break,
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The position of the first `FF` byte.
+fn next_ff(bytes: &[u8]) -> Option<usize> {
+    bytes.iter().position(|&b| b == 0xFF)
+}
+
 /// The size (width, height) of a PNG or JPEG from its header alone (nothing decoded), checked
-/// against [`MAX_IMAGE_PIXELS`].
+/// against [`MAX_IMAGE_PIXELS`], and the file checked whole ([`check_image_complete`]), so that a
+/// dataset check finds a truncated image before training starts.
 pub fn read_image_size(path: &Path) -> Result<(usize, usize), DataError> {
     let bytes = read_bytes(path)?;
     let (w, h) = if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
@@ -84,12 +185,14 @@ pub fn read_image_size(path: &Path) -> Result<(usize, usize), DataError> {
         (info.width as usize, info.height as usize)
     };
     check_image_size(path, w, h)?;
+    check_image_complete(&bytes, path)?;
     Ok((w, h))
 }
 
 /// Read a camera image, PNG or JPEG (told apart by the file's magic bytes, not its name), as RGB8.
 /// A missing file gives [`DataError::NotFound`] naming it; a header claiming more than
-/// [`MAX_IMAGE_PIXELS`] is an error before any pixel buffer is allocated.
+/// [`MAX_IMAGE_PIXELS`] is an error before any pixel buffer is allocated, and so is a file cut
+/// short ([`check_image_complete`]).
 pub fn read_image(path: &Path) -> Result<RgbImage, DataError> {
     let bytes = read_bytes(path)?;
     if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
@@ -107,6 +210,8 @@ pub fn decode_jpeg(bytes: &[u8], path: &Path) -> Result<RgbImage, DataError> {
         path: path.to_path_buf(),
         detail,
     };
+    // The decoder fills a scan cut short with grey and succeeds: refuse a truncated file first.
+    check_image_complete(bytes, path)?;
     let opts = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB);
     let mut dec = zune_jpeg::JpegDecoder::new_with_options(std::io::Cursor::new(bytes), opts);
     dec.decode_headers()
@@ -147,6 +252,7 @@ pub fn decode_png(bytes: &[u8], path: &Path) -> Result<RgbImage, DataError> {
         path: path.to_path_buf(),
         detail: e.to_string(),
     };
+    check_image_complete(bytes, path)?;
     let mut decoder = png::Decoder::new(bytes);
     {
         let info = decoder.read_header_info().map_err(err)?;
@@ -418,6 +524,44 @@ mod tests {
             }
         }
         img
+    }
+
+    /// A JPEG's structure by hand: an APP1 segment holding a whole thumbnail (its own FFD8 ..
+    /// FFD9, as EXIF does), a scan whose data has a stuffed `FF 00`, a restart marker and fill
+    /// bytes, then EOI. Only the outer EOI ends the file; every cut before it is refused.
+    #[test]
+    fn the_jpeg_walk_finds_the_outer_end_of_image() {
+        let mut b = vec![0xFF, 0xD8];
+        let thumbnail = [0xFF, 0xD8, 0xFF, 0xDA, 0x00, 0x02, 0x11, 0xFF, 0xD9];
+        b.extend_from_slice(&[0xFF, 0xE1, 0x00, 2 + thumbnail.len() as u8]);
+        b.extend_from_slice(&thumbnail);
+        b.extend_from_slice(&[0xFF, 0xDA, 0x00, 0x04, 0x01, 0x00]);
+        b.extend_from_slice(&[0x12, 0xFF, 0x00, 0x34, 0xFF, 0xD0, 0x56, 0xFF, 0xFF, 0xD9]);
+        assert_eq!(jpeg_end(&b), Some(b.len()));
+        let mut trailer = b.clone();
+        trailer.extend_from_slice(&[0, 0, 0xFF]);
+        assert_eq!(jpeg_end(&trailer), Some(b.len()));
+        for keep in 0..b.len() {
+            assert_eq!(jpeg_end(&b[..keep]), None, "cut to {keep} of {}", b.len());
+        }
+        let path = Path::new("cut.jpg");
+        let e = check_image_complete(&b[..b.len() - 1], path).unwrap_err();
+        assert!(e.to_string().contains("cut.jpg") && e.to_string().contains("truncated"));
+        assert!(check_image_complete(&b, path).is_ok());
+    }
+
+    /// PNG chunks walked by their lengths up to IEND; a length pointing past the end is a cut.
+    #[test]
+    fn the_png_walk_needs_every_chunk_up_to_iend() {
+        let b = encode_png(&pattern(5, 4)).unwrap();
+        assert_eq!(png_end(&b), Some(b.len()));
+        for keep in 0..b.len() {
+            assert_eq!(png_end(&b[..keep]), None, "cut to {keep} of {}", b.len());
+        }
+        let mut huge = b.clone();
+        // The IHDR chunk's length field, claiming 4 GiB.
+        huge[8..12].copy_from_slice(&[0xFF; 4]);
+        assert_eq!(png_end(&huge), None);
     }
 
     #[test]
