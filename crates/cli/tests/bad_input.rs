@@ -193,6 +193,10 @@ fn bad_input_table() {
     let cut_img = data_cut_img.join("sequences/08/image_2/000000.png");
     let full_img = std::fs::read(&cut_img).unwrap();
     std::fs::write(&cut_img, &full_img[..full_img.len() * 2 / 3]).unwrap();
+    // A labelled training frame without its mask of unobserved voxels.
+    let data_no_invalid = root.join("data_no_invalid");
+    copy_dir(&data, &data_no_invalid);
+    std::fs::remove_file(data_no_invalid.join("sequences/00/voxels/000000.invalid")).unwrap();
     let jpeg = std::fs::read(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/tests/data/pattern_420.jpg"),
     )
@@ -515,6 +519,25 @@ fn bad_input_table() {
             status: 1,
             want: vec![s("08/image_2/000000.png"), s("truncated")],
             absent: vec![out.join("t_cut_img")],
+        },
+        Case {
+            name: "train on a labelled frame without its .invalid",
+            args: os(&[
+                &"train",
+                &"--config",
+                &cfg,
+                &"--data",
+                &data_no_invalid,
+                &"--out",
+                &out.join("t_no_invalid"),
+                &"--sequences",
+                &"00",
+                &"--val-sequences",
+                &"",
+            ]),
+            status: 1,
+            want: vec![s("00/voxels/000000.invalid"), s("missing")],
+            absent: vec![out.join("t_no_invalid")],
         },
         infer_img(
             "infer --image with a JPEG cut in half",

@@ -69,7 +69,7 @@ pub fn check_image_size(path: &Path, width: usize, height: usize) -> Result<(), 
 /// matters most for JPEG: the decoder, like browsers, fills a scan that ends early with grey and
 /// reports success, so a truncated camera image would otherwise train or predict silently.
 pub fn check_image_complete(bytes: &[u8], path: &Path) -> Result<(), DataError> {
-    let (kind, end) = if bytes.starts_with(&[0xFF, 0xD8]) {
+    let (kind, end) = if bytes.starts_with(JPEG_START) {
         ("JPEG", jpeg_end(bytes))
     } else if bytes.starts_with(PNG_SIGNATURE) {
         ("PNG", png_end(bytes))
@@ -96,6 +96,10 @@ pub fn check_image_complete(bytes: &[u8], path: &Path) -> Result<(), DataError> 
 
 const PNG_SIGNATURE: &[u8] = &[0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
 
+/// A JPEG's first bytes: start-of-image and the first marker's `FF` (how the readers tell it from
+/// a PNG).
+const JPEG_START: &[u8] = &[0xFF, 0xD8, 0xFF];
+
 /// The offset just after a PNG's `IEND` chunk, walking the chunks by their declared lengths;
 /// `None` when the file ends first.
 fn png_end(bytes: &[u8]) -> Option<usize> {
@@ -116,9 +120,9 @@ fn png_end(bytes: &[u8]) -> Option<usize> {
 }
 
 /// The offset just after a JPEG's end-of-image marker: marker segments are skipped by their
-/// declared lengths, entropy-coded data (after each start-of-scan) up to the next marker, which
-/// there is any `FF` not followed by a stuffed `00` or a restart marker `D0`-`D7`. Stray bytes
-/// between segments are skipped, as decoders do. `None` when the file ends first.
+/// declared lengths, and the entropy-coded data after each start-of-scan up to the next marker (an
+/// `FF` followed by anything but a stuffed `00`, a restart marker `D0`-`D7` or another fill `FF`).
+/// Stray bytes between segments are skipped, as decoders do. `None` when the file ends first.
 fn jpeg_end(bytes: &[u8]) -> Option<usize> {
     let mut at = 2;
     loop {
@@ -166,7 +170,7 @@ fn next_ff(bytes: &[u8]) -> Option<usize> {
 /// dataset check finds a truncated image before training starts.
 pub fn read_image_size(path: &Path) -> Result<(usize, usize), DataError> {
     let bytes = read_bytes(path)?;
-    let (w, h) = if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+    let (w, h) = if bytes.starts_with(JPEG_START) {
         let mut dec = zune_jpeg::JpegDecoder::new(std::io::Cursor::new(&bytes));
         dec.decode_headers().map_err(|e| DataError::Image {
             path: path.to_path_buf(),
@@ -195,7 +199,7 @@ pub fn read_image_size(path: &Path) -> Result<(usize, usize), DataError> {
 /// short ([`check_image_complete`]).
 pub fn read_image(path: &Path) -> Result<RgbImage, DataError> {
     let bytes = read_bytes(path)?;
-    if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+    if bytes.starts_with(JPEG_START) {
         decode_jpeg(&bytes, path)
     } else {
         decode_png(&bytes, path)

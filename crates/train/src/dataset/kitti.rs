@@ -162,8 +162,9 @@ impl KittiDataset {
     }
 
     /// What [`Self::load`] would refuse in frame `i`, found without decoding it: the sequence's
-    /// calibration, the image header (size limit, against the calibration), and the sizes of the
-    /// label, `.invalid` and (with `load_points`) velodyne files. `Err` names the file and the problem.
+    /// calibration, the image header (size limit, against the calibration) and the image file
+    /// whole, a labelled frame's `.invalid` mask present, and the sizes of the label, `.invalid`
+    /// and (with `load_points`) velodyne files. `Err` names the file and the problem.
     pub fn check_frame(&self, i: usize) -> Result<(), TrainError> {
         let f = self
             .frames
@@ -178,10 +179,17 @@ impl KittiDataset {
         let label_p = self.paths.voxels(&f.sequence, &f.frame, "label");
         if label_p.exists() {
             check_file_len(&label_p, 2 * n, "uint16 voxel labels")?;
+            // The mask of the voxels no scan observed belongs to the labels: without it they would
+            // train as empty. Scoring and `prepare` need it too.
             let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
-            if inv_p.exists() {
-                check_file_len(&inv_p, n.div_ceil(8), "bit-packed voxel mask")?;
+            if !inv_p.exists() {
+                return Err(TrainError::Data(format!(
+                    "{}: missing; a labelled frame needs its mask of unobserved voxels next to {}",
+                    inv_p.display(),
+                    label_p.display()
+                )));
             }
+            check_file_len(&inv_p, n.div_ceil(8), "bit-packed voxel mask")?;
         }
         if self.load_points {
             let p = self.paths.velodyne(&f.sequence, &f.frame);
@@ -244,12 +252,10 @@ impl KittiDataset {
             }
             let mut t = self.map.remap(&raw);
             let inv_p = self.paths.voxels(&f.sequence, &f.frame, "invalid");
-            if inv_p.exists() {
-                let inv = sk::read_packed_bits(&inv_p, n)?;
-                for (t, &v) in t.iter_mut().zip(&inv) {
-                    if v == 1 {
-                        *t = IGNORE;
-                    }
+            let inv = sk::read_packed_bits(&inv_p, n)?;
+            for (t, &v) in t.iter_mut().zip(&inv) {
+                if v == 1 {
+                    *t = IGNORE;
                 }
             }
             Some(t)
