@@ -169,6 +169,14 @@ def test_bad_input_is_a_clear_error():
         conv3d(coords.astype(np.int64) + 2**40, feats, weight, (11, 9, 6), 3)
     with pytest.raises(ValueError):
         conv3d(coords, feats, weight[:, :2, :2, :2], (11, 9, 6), 2, subm=True)  # even subm kernel
+    # Geometry beyond the largest grid axis: was a division by zero (stride) or a silent
+    # truncation to 0 (padding) in the int32 site arithmetic.
+    for geometry in ({"stride": 2**40}, {"padding": 2**40}, {"dilation": 2**20},
+                     {"stride": 2**20, "transposed": True}):
+        with pytest.raises(ValueError, match="at most 32768"):
+            conv3d(coords, feats, weight, (11, 9, 6), 3, **geometry)
+    with pytest.raises(ValueError, match="output spatial shape"):
+        conv3d(coords, feats, weight, (11, 9, 6), 3, padding=20000)
 
 
 def test_the_gil_is_released_during_the_work():

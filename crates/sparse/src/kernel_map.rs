@@ -12,7 +12,7 @@
 //! a regular/submanifold convolution connects output `o` to input `i = o * stride - padding + k * dilation`;
 //! a transposed convolution connects input `i` to output `o = i * stride - padding + k * dilation`.
 
-use crate::coords::{pack, unique_sorted, Coord, CoordSet};
+use crate::coords::{pack, unique_sorted, Coord, CoordSet, MAX_AXIS_EXTENT};
 use crate::error::{Result, SparseError};
 use rayon::prelude::*;
 use std::any::Any;
@@ -74,6 +74,9 @@ impl ConvGeometry {
         }
         v
     }
+    /// Errors unless kernel, stride and dilation are positive and every value (padding included,
+    /// and the dilated kernel's reach) is at most [`MAX_AXIS_EXTENT`], the largest grid axis: the
+    /// site arithmetic is in `i32` and nothing larger can reach a site.
     fn validate(&self) -> Result<()> {
         if self.kernel.contains(&0) || self.stride.contains(&0) || self.dilation.contains(&0) {
             return Err(SparseError::Config(format!(
@@ -81,7 +84,38 @@ impl ConvGeometry {
                 self.kernel, self.stride, self.dilation
             )));
         }
+        let too_large = (0..3).any(|a| {
+            let reach = (self.kernel[a] - 1).saturating_mul(self.dilation[a]);
+            [
+                self.kernel[a],
+                self.stride[a],
+                self.padding[a],
+                self.dilation[a],
+                reach,
+            ]
+            .iter()
+            .any(|&v| v > MAX_AXIS_EXTENT)
+        });
+        if too_large {
+            return Err(SparseError::Config(format!(
+                "kernel {:?}, stride {:?}, padding {:?}, dilation {:?}: each value and each \
+                 (kernel - 1) * dilation must be at most {MAX_AXIS_EXTENT}, the largest grid axis",
+                self.kernel, self.stride, self.padding, self.dilation
+            )));
+        }
         Ok(())
+    }
+
+    /// Errors unless every axis of an output grid is at most [`MAX_AXIS_EXTENT`].
+    fn check_output_shape(&self, out: [usize; 3]) -> Result<[usize; 3]> {
+        if out.iter().any(|&s| s > MAX_AXIS_EXTENT) {
+            return Err(SparseError::Config(format!(
+                "output spatial shape {out:?} (kernel {:?}, stride {:?}, padding {:?}, dilation \
+                 {:?}): each axis must be at most {MAX_AXIS_EXTENT}",
+                self.kernel, self.stride, self.padding, self.dilation
+            )));
+        }
+        Ok(out)
     }
     /// Output spatial shape of a regular (strided) convolution: `floor((in + 2p - d(k-1) - 1)/s) + 1`.
     pub fn regular_output_shape(&self, input: [usize; 3]) -> Result<[usize; 3]> {
@@ -99,7 +133,7 @@ impl ConvGeometry {
             }
             out[a] = (num as usize) / self.stride[a] + 1;
         }
-        Ok(out)
+        self.check_output_shape(out)
     }
     /// Output spatial shape of a transposed convolution: `(in-1)s - 2p + d(k-1) + 1 + output_padding`.
     pub fn transposed_output_shape(
@@ -108,6 +142,11 @@ impl ConvGeometry {
         output_padding: [usize; 3],
     ) -> Result<[usize; 3]> {
         self.validate()?;
+        if output_padding.iter().any(|&p| p > MAX_AXIS_EXTENT) {
+            return Err(SparseError::Config(format!(
+                "output padding {output_padding:?}: each value must be at most {MAX_AXIS_EXTENT}"
+            )));
+        }
         let mut out = [0; 3];
         for a in 0..3 {
             let v = (input[a] as i64 - 1) * self.stride[a] as i64 - 2 * self.padding[a] as i64
@@ -121,7 +160,7 @@ impl ConvGeometry {
             }
             out[a] = v as usize;
         }
-        Ok(out)
+        self.check_output_shape(out)
     }
 }
 
@@ -1346,6 +1385,66 @@ mod tests {
                 i.iter().copied().zip(o.iter().copied()).collect()
             })
             .collect()
+    }
+
+    /// A geometry value beyond the largest grid axis (which `i32` site arithmetic would truncate
+    /// or divide by zero with) and an output grid beyond it are errors naming the values; the
+    /// largest values that fit still build.
+    #[test]
+    fn geometries_beyond_the_largest_axis_are_errors() {
+        let set = Arc::new(random_set(3, [8, 8, 8], 1, 20, true));
+        let big = MAX_AXIS_EXTENT + 1;
+        let bad = [
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3; 3]).with_stride([1 << 40; 3]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3; 3]).with_stride([big, 1, 1]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3; 3]).with_padding([1 << 40; 3]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3; 3]).with_padding([0, 0, 20_000]),
+            ),
+            (
+                MapKind::Regular,
+                ConvGeometry::new([3; 3]).with_dilation([1 << 40; 3]),
+            ),
+            (
+                MapKind::Submanifold,
+                ConvGeometry::new([3; 3]).with_dilation([1 << 20; 3]),
+            ),
+            (
+                MapKind::Transposed {
+                    output_padding: [0; 3],
+                },
+                ConvGeometry::new([3; 3]).with_stride([1 << 20; 3]),
+            ),
+            (
+                MapKind::Transposed {
+                    output_padding: [1 << 63; 3],
+                },
+                ConvGeometry::new([3; 3]),
+            ),
+        ];
+        for (kind, g) in bad {
+            let e = conv_map(&set, kind, g).err();
+            let msg = e.map(|e| e.to_string()).unwrap_or_default();
+            assert!(
+                msg.contains(&MAX_AXIS_EXTENT.to_string()),
+                "{kind:?} {g:?}: {msg:?}"
+            );
+        }
+        let fits = ConvGeometry::new([3; 3])
+            .with_stride([MAX_AXIS_EXTENT; 3])
+            .with_padding([1; 3]);
+        let (out, _) = conv_map(&set, MapKind::Regular, fits).unwrap();
+        assert_eq!(out.spatial_shape(), [1, 1, 1]);
     }
 
     /// The dense-table path and the hash path give the same outputs and the same pairs, in the same
