@@ -75,8 +75,19 @@ def confusion(pred, gt, invalid=None, *, visible=None, dataset="semantickitti"):
 
 
 def report(confusion, dataset="semantickitti", frames=1):
-    """The metrics of a confusion matrix ``conf[pred][gt]``, with the keys of ``evaluate``."""
-    return _native.report(_np.asarray(confusion, dtype=_np.uint64), dataset, frames)
+    """The metrics of a confusion matrix ``conf[pred][gt]``, with the keys of ``evaluate``.
+
+    ``confusion``: non-negative integer counts ``[C, C]`` (as ``confusion`` returns them, or
+    their sum over frames); floats and negative counts are refused, not rounded or wrapped.
+    """
+    c = _np.asarray(confusion)
+    if c.dtype.kind not in "iu":
+        raise ValueError(f"confusion must be an integer array of counts, got dtype {c.dtype}")
+    if c.ndim != 2 or c.shape[0] != c.shape[1]:
+        raise ValueError(f"confusion must be a square matrix [C, C], got shape {c.shape}")
+    if c.dtype.kind == "i" and c.size and c.min() < 0:
+        raise ValueError(f"confusion has a negative count ({c.min()})")
+    return _native.report(c.astype(_np.uint64, copy=False), dataset, frames)
 
 
 def class_names(dataset="semantickitti"):
@@ -118,7 +129,10 @@ def write_voxels(path, data, learning=False):
     all). ``data`` as ``read_voxels`` returns it: an ``[X, Y, Z]`` array of raw ids (``.label``;
     learning classes with ``learning=True``), of 0/1 (``.bin`` / ``.invalid`` / ``.occluded``), or a
     dict with ``semantics`` (0..17) and optionally the masks (default all 1) for ``labels.npz``.
-    Values the reader would refuse are refused.
+    What the reader would refuse or read differently is refused: values out of range, a key other
+    than the three of ``labels.npz``, and a SemanticKITTI array whose shape is not the grid the
+    reader finds from its size (the file stores no shape: a transposed ``[Z, Y, X]`` array would
+    be read back as ``[X, Y, Z]``).
     """
     if isinstance(data, dict):
         data = {k: _int_array(k, v) for k, v in data.items()}

@@ -126,6 +126,13 @@ def test_scoring_errors(tmp_path, kitti_data):
     with pytest.raises(ValueError, match="integer"):
         sparseocc.confusion(np.zeros(4), np.zeros(4, dtype=np.uint8))
     with pytest.raises(ValueError, match="square"):
-        sparseocc.report(np.zeros((20, 19)))
+        sparseocc.report(np.zeros((20, 19), dtype=int))
     with pytest.raises(ValueError, match="classes"):
-        sparseocc.report(np.zeros((18, 18)))
+        sparseocc.report(np.zeros((18, 18), dtype=int))
+    # Counts that are not counts are refused, not rounded, wrapped or summed past 2^64.
+    with pytest.raises(ValueError, match="integer"):
+        sparseocc.report(np.full((20, 20), 1.5))
+    with pytest.raises(ValueError, match="negative"):
+        sparseocc.report(np.full((20, 20), -1))
+    with pytest.raises(ValueError, match="2\\^64"):
+        sparseocc.report(np.full((20, 20), 2**63, dtype=np.uint64))

@@ -89,6 +89,12 @@ impl ConfusionMatrix {
         self.counts.iter().sum()
     }
 
+    /// The sum of all counts, `None` when it does not fit a `u64` (then every row, column and
+    /// total that the metrics take would wrap).
+    pub fn checked_total(&self) -> Option<u64> {
+        self.counts.iter().try_fold(0u64, |t, &c| t.checked_add(c))
+    }
+
     /// Raw counts in row-major `[pred][gt]` order.
     pub fn counts(&self) -> &[u64] {
         &self.counts

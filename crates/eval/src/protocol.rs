@@ -166,6 +166,17 @@ pub enum EvalMask<'a> {
     Visible(&'a [u8]),
 }
 
+/// Errors unless the counts of `conf` sum to a `u64` (every row, column and total the metrics
+/// take then fits too); `what` names the matrix.
+fn check_total(conf: &ConfusionMatrix, what: &str) -> Result<(), EvalError> {
+    if conf.checked_total().is_none() {
+        return Err(EvalError::Incompatible(format!(
+            "{what}: its counts sum to more than 2^64 - 1 voxels"
+        )));
+    }
+    Ok(())
+}
+
 /// Confusion-matrix accumulator of one protocol over any number of frames.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Evaluator {
@@ -200,6 +211,7 @@ impl Evaluator {
                 report.dataset.num_classes()
             )));
         }
+        check_total(&conf, "report confusion matrix")?;
         Ok(Self {
             protocol: report.dataset,
             conf,
@@ -224,6 +236,7 @@ impl Evaluator {
                 n = conf.num_classes()
             )));
         }
+        check_total(&conf, "confusion matrix")?;
         Ok(Self {
             protocol,
             conf,
@@ -306,6 +319,12 @@ impl Evaluator {
 
     /// Add another accumulator of the same protocol.
     pub fn merge(&mut self, other: &Evaluator) -> Result<(), EvalError> {
+        let sum = u128::from(self.conf.total()) + u128::from(other.conf.total());
+        if sum > u128::from(u64::MAX) {
+            return Err(EvalError::Incompatible(format!(
+                "merging two evaluations of {sum} voxels in all: more than 2^64 - 1"
+            )));
+        }
         if other.protocol != self.protocol || !self.conf.merge(&other.conf) {
             return Err(EvalError::Incompatible(format!(
                 "{} evaluator merged with {} evaluator",
@@ -329,8 +348,9 @@ impl Evaluator {
         let ee = conf.get(e, e);
         let pred_empty = conf.row_sum(e);
         let gt_empty = conf.col_sum(e);
-        // Σ over p≠e, g≠e = total − row(e) − col(e) + conf[e][e].
-        let occ_tp = (total + ee - pred_empty - gt_empty) as f64;
+        // Σ over p≠e, g≠e = total − row(e) − (col(e) − conf[e][e]); in this order no step leaves
+        // 0..=total.
+        let occ_tp = (total - pred_empty - (gt_empty - ee)) as f64;
         let pred_occ = (total - pred_empty) as f64;
         let gt_occ = (total - gt_empty) as f64;
         let eps = f64::from(f32::EPSILON);

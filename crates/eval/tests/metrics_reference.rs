@@ -440,3 +440,39 @@ fn size_mismatch_is_an_error() {
         .is_err());
     assert_eq!(ev.frames(), 0);
 }
+
+/// Counts whose sum does not fit a `u64` (every metric would be taken from wrapped sums: an mIoU
+/// of -1 was reported) are refused when a matrix is taken in, from arrays, from a report's JSON
+/// or by a merge; the largest sum that fits is still scored.
+#[test]
+fn counts_that_overflow_are_refused() {
+    use occ_eval::ConfusionMatrix;
+    let n = Protocol::SemanticKitti.num_classes();
+    let rows = |v: u64| vec![vec![v; n]; n];
+    let over = ConfusionMatrix::from_rows(&rows(1 << 63)).unwrap();
+    let e = Evaluator::from_confusion(Protocol::SemanticKitti, over, 1).unwrap_err();
+    assert!(e.to_string().contains("2^64 - 1"), "{e}");
+
+    let mut fits = rows(0);
+    fits[1][1] = u64::MAX - 7;
+    fits[0][0] = 7;
+    let conf = ConfusionMatrix::from_rows(&fits).unwrap();
+    let ev = Evaluator::from_confusion(Protocol::SemanticKitti, conf, 1).unwrap();
+    let r = ev.report();
+    assert_eq!(r.per_class.get("car"), Some(1.0));
+    assert_eq!(r.iou, 1.0);
+
+    let mut json = r.clone();
+    json.confusion[2][2] = 1;
+    assert!(Evaluator::from_report(&json).is_err());
+
+    let mut one = rows(0);
+    one[1][1] = 1;
+    let one = ConfusionMatrix::from_rows(&one).unwrap();
+    let mut full = ev.clone();
+    let e = full
+        .merge(&Evaluator::from_confusion(Protocol::SemanticKitti, one, 1).unwrap())
+        .unwrap_err();
+    assert!(e.to_string().contains("more than 2^64 - 1"), "{e}");
+    assert_eq!(full, ev, "a refused merge adds nothing");
+}
