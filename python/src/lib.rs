@@ -351,6 +351,9 @@ fn u8_values(a: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<u8>, [usize; 3])
     Ok((out, dims))
 }
 
+/// The arrays of an Occ3D `labels.npz`.
+const OCC3D_KEYS: [&str; 3] = ["semantics", "mask_lidar", "mask_camera"];
+
 #[pyfunction]
 #[pyo3(signature = (path, data, learning = false))]
 fn write_voxels(
@@ -360,6 +363,12 @@ fn write_voxels(
     learning: bool,
 ) -> PyResult<()> {
     let kind = voxels::VoxelFileKind::of(&path).map_err(lib_err)?;
+    if kind != voxels::VoxelFileKind::Occ3d && data.cast::<PyDict>().is_ok() {
+        return Err(value_err(format!(
+            "{}: a SemanticKITTI voxel file is written from one [X, Y, Z] array; a dict is for an Occ3D labels.npz",
+            path.display()
+        )));
+    }
     let file = match kind {
         voxels::VoxelFileKind::KittiLabel => {
             let (raw, dims) = label_values(data, learning)?;
@@ -379,6 +388,17 @@ fn write_voxels(
             let d = data
                 .cast::<PyDict>()
                 .map_err(|_| value_err("an Occ3D labels.npz is written from a dict with 'semantics' (and optionally 'mask_lidar', 'mask_camera')"))?;
+            // A misspelt mask would otherwise be left out and written as all ones.
+            for key in d.keys() {
+                let key: String = key.extract().unwrap_or_else(|_| format!("{key}"));
+                if !OCC3D_KEYS.contains(&key.as_str()) {
+                    return Err(value_err(format!(
+                        "{}: unknown key '{key}' (an Occ3D labels.npz holds {})",
+                        path.display(),
+                        OCC3D_KEYS.join(", ")
+                    )));
+                }
+            }
             let sem = d
                 .get_item("semantics")?
                 .ok_or_else(|| value_err("the dict has no 'semantics'"))?;
@@ -549,9 +569,14 @@ fn read_calib_arg(calib: &Bound<'_, PyAny>) -> PyResult<Calib> {
             let v = d
                 .get_item(key)?
                 .ok_or_else(|| value_err(format!("calib has no '{key}'")))?;
-            let a: PyReadonlyArrayDyn<'_, f64> = v
-                .extract()
-                .map_err(|_| value_err(format!("calib['{key}'] must be a 3x4 float array")))?;
+            // Any array-like of numbers (an integer array, nested lists), as numpy reads it.
+            let bad = |_| value_err(format!("calib['{key}'] must be a 3x4 array of numbers"));
+            let a = calib
+                .py()
+                .import("numpy")?
+                .call_method1("asarray", (v, "float64"))
+                .map_err(bad)?;
+            let a: PyReadonlyArrayDyn<'_, f64> = a.extract().map_err(bad)?;
             let vals = c_order(&a);
             if vals.len() != 12 {
                 return Err(value_err(format!(
@@ -592,10 +617,20 @@ impl Model {
     fn predict<'py>(
         &self,
         py: Python<'py>,
-        image: PyReadonlyArrayDyn<'py, u8>,
+        image: &Bound<'py, PyAny>,
         calib: &Bound<'py, PyAny>,
         test_mirror: Option<bool>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let image: PyReadonlyArrayDyn<'py, u8> = image.extract().map_err(|_| {
+            let got = match image.getattr("dtype") {
+                Ok(d) => format!("dtype {d}"),
+                Err(_) => format!("a {}", image.get_type()),
+            };
+            value_err(format!(
+                "image must be an [H, W, 3] uint8 RGB numpy array (as read_image returns), got \
+                 {got}; an image of floats in [0, 1] is (img * 255).round().astype(np.uint8)"
+            ))
+        })?;
         let s = image.shape();
         if s.len() != 3 || s[2] != 3 || s[0] == 0 || s[1] == 0 {
             return Err(value_err(format!(

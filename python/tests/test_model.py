@@ -59,8 +59,26 @@ def test_model_errors(tmp_path, tiny_run, kitti_data):
         model.predict(np.zeros((40, 2000, 3), dtype=np.uint8), calib)
     with pytest.raises(ValueError, match="calib"):
         model.predict(np.zeros((185, 613, 3), dtype=np.uint8), 42)
-    with pytest.raises(ValueError, match="singular"):
-        model.predict(np.zeros((185, 613, 3), dtype=np.uint8), {"P2": np.zeros((3, 4)), "Tr": np.eye(4)[:3]})
+    image = sparseocc.read_image(kitti_data / "sequences" / "08" / "image_2" / "000000.png")
+    p2 = np.array([[360.77, 0, 304.78, 0], [0, 360.77, 86.43, 0], [0, 0, 1, 0]])
+    tr = np.array([[0, -1, 0, 0], [0, 0, -1, -0.15], [1, 0, 0, -0.27]])
+    # Any array-like of numbers is a matrix: integers, nested lists.
+    rot = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])
+    want = model.predict(image, {"P2": p2, "Tr": rot.astype(np.float64)})
+    assert (model.predict(image, {"P2": p2.tolist(), "Tr": rot.tolist()}) == want).all()
+    assert (model.predict(image, {"P2": p2, "Tr": rot}) == want).all()
+    with pytest.raises(ValueError, match="pinhole"):
+        model.predict(image, {"P2": np.zeros((3, 4)), "Tr": tr})
+    skew = p2.copy()
+    skew[0, 1] = 3.0
+    with pytest.raises(ValueError, match="pinhole"):
+        model.predict(image, {"P2": skew, "Tr": tr})
+    with pytest.raises(ValueError, match="rotation"):
+        model.predict(image, {"P2": p2, "Tr": tr * 1000})
+    with pytest.raises(ValueError, match=r"calib\['Tr'\] must be a 3x4 array of numbers"):
+        model.predict(image, {"P2": p2, "Tr": "x"})
+    with pytest.raises(ValueError, match="uint8.*got dtype float32"):
+        model.predict(image.astype(np.float32) / 255, calib)
     with pytest.raises(sparseocc.SparseOccError, match="no frame 999999"):
         model.predict_frame(kitti_data, "08", "999999")
     with pytest.raises(sparseocc.SparseOccError, match="no such file|not found"):

@@ -73,6 +73,11 @@ def test_occ3d_round_trip_and_refusals(tmp_path):
         sparseocc.write_voxels(
             tmp_path / "bad" / "labels.npz", {"semantics": sem, "mask_lidar": np.ones((2, 2, 2), dtype=np.uint8)}
         )
+    # A misspelt mask is refused (it would have been written as all ones).
+    with pytest.raises(ValueError, match="unknown key 'mask_camara'"):
+        sparseocc.write_voxels(
+            tmp_path / "bad" / "labels.npz", {"semantics": sem, "mask_camara": np.zeros(sem.shape, dtype=np.uint8)}
+        )
     assert not (tmp_path / "bad" / "labels.npz").exists()
     assert os.listdir(tmp_path / "bad") == []
 
@@ -95,4 +100,11 @@ def test_bad_voxel_files_and_values(tmp_path):
         sparseocc.write_voxels(tmp_path / "x.label", np.zeros((8, 8), dtype=np.uint16))
     with pytest.raises(ValueError, match="integer"):
         sparseocc.write_voxels(tmp_path / "x.label", np.zeros((8, 8, 8)))
+    # A .label stores no shape: an array the reader would take for another grid is refused.
+    with pytest.raises(sparseocc.SparseOccError, match=r"read back as \[128, 128, 16\]"):
+        sparseocc.write_voxels(tmp_path / "x.label", np.zeros((16, 128, 128), dtype=np.uint16))
+    with pytest.raises(sparseocc.SparseOccError, match="match no grid"):
+        sparseocc.write_voxels(tmp_path / "x.bin", np.zeros((8, 8, 8), dtype=np.uint8))
+    with pytest.raises(ValueError, match="a dict is for an Occ3D labels.npz"):
+        sparseocc.write_voxels(tmp_path / "x.label", {"semantics": np.zeros((8, 8, 8), dtype=np.uint8)})
     assert sorted(os.listdir(tmp_path)) == ["odd.label"]

@@ -176,6 +176,26 @@ fn bad_input_table() {
     let data_huge = root.join("data_huge");
     copy_dir(&data, &data_huge);
     std::fs::copy(&huge, data_huge.join("sequences/08/image_2/000000.png")).unwrap();
+    // A calibration whose Tr scales the points (not a rotation): the projection would be silently
+    // wrong.
+    let data_bad_tr = root.join("data_bad_tr");
+    copy_dir(&data, &data_bad_tr);
+    let bad_tr_calib = data_bad_tr.join("sequences/08/calib.txt");
+    let scaled: String = std::fs::read_to_string(&bad_tr_calib)
+        .unwrap()
+        .lines()
+        .map(|l| match l.strip_prefix("Tr:") {
+            Some(v) => {
+                let v: Vec<String> = v
+                    .split_whitespace()
+                    .map(|x| format!("{:e}", x.parse::<f64>().unwrap() * 1000.0))
+                    .collect();
+                format!("Tr: {}\n", v.join(" "))
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(&bad_tr_calib, scaled).unwrap();
     // A labelled frame without its image.
     let data_noimg = root.join("data_noimg");
     copy_dir(&data, &data_noimg);
@@ -435,6 +455,13 @@ fn bad_input_table() {
             "08",
             vec![s("000000.png"), s("calib.txt")],
             "i4",
+        ),
+        infer_data(
+            "infer --data with a calibration whose Tr is not a rotation",
+            &data_bad_tr,
+            "08",
+            vec![s("08/calib.txt"), s("must be a rotation")],
+            "i10",
         ),
         infer_data(
             "infer --data with a labelled frame without its image",

@@ -279,3 +279,74 @@ fn bad_inputs_give_errors_naming_the_file() {
         Err(DataError::NotFound { .. })
     ));
 }
+
+/// A calibration that would project silently wrong is refused by `read_calib` and
+/// `Calib::from_rows` alike, with the matrix named: `P2[:3,:3]` that is not a pinhole intrinsic
+/// matrix (the camera is read from fx, fy, cx, cy alone), `Tr[:3,:3]` that is not a rotation. A
+/// rotation written with 4 significant digits, KITTI's own numbers and P2's 4th column pass.
+#[test]
+fn calibrations_that_would_project_wrong_are_refused() {
+    let p2 = [
+        [721.5377, 0.0, 609.5593, 44.85728],
+        [0.0, 721.5377, 172.854, 0.2163791],
+        [0.0, 0.0, 1.0, 0.002745884],
+    ];
+    let (c, s) = (0.6_f64.cos(), 0.6_f64.sin());
+    let tr = [
+        [c, -s, 0.0, 0.1],
+        [0.0, 0.0, -1.0, -0.08],
+        [s, c, 0.0, -0.27],
+    ];
+    assert!(Calib::from_rows(p2, tr).is_ok());
+    let round4 = |m: [[f64; 4]; 3]| m.map(|r| r.map(|v| (v * 1e4).round() / 1e4));
+    assert!(Calib::from_rows(p2, round4(tr)).is_ok());
+
+    let scaled = tr.map(|r| r.map(|v| v * 1000.0));
+    let mut reflected = tr;
+    reflected[1] = reflected[1].map(|v| -v);
+    for (what, bad) in [
+        ("scaled", scaled),
+        ("reflected", reflected),
+        ("zero", [[0.0; 4]; 3]),
+    ] {
+        let e = Calib::from_rows(p2, bad).unwrap_err();
+        assert!(e.contains("Tr[:3,:3] must be a rotation"), "{what}: {e}");
+    }
+    let mut skew = p2;
+    skew[0][1] = 2.0;
+    let mut third_row = p2;
+    third_row[2] = [0.0, 0.0, -1.0, 0.0];
+    let scaled_p2 = p2.map(|r| r.map(|v| 2.0 * v));
+    let mut negative_f = p2;
+    negative_f[0][0] = -721.5377;
+    for (what, bad) in [
+        ("skew", skew),
+        ("third row", third_row),
+        ("scaled", scaled_p2),
+        ("negative fx", negative_f),
+        ("zero", [[0.0; 4]; 3]),
+    ] {
+        let e = Calib::from_rows(bad, tr).unwrap_err();
+        assert!(e.contains("pinhole intrinsic matrix"), "{what}: {e}");
+    }
+
+    // The file reader gives the same refusal, naming the file.
+    let tmp = TempDir::new("occ-data-test", "calib");
+    let d = tmp.path();
+    let row = |m: [[f64; 4]; 3]| {
+        m.iter()
+            .flatten()
+            .map(|v| format!("{v:e}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    let path = d.join("calib.txt");
+    std::fs::write(&path, format!("P2: {}\nTr: {}\n", row(p2), row(scaled))).unwrap();
+    let e = msg(&read_calib(&path).unwrap_err());
+    assert!(e.contains("calib.txt") && e.contains("rotation"), "{e}");
+    std::fs::write(&path, format!("P2: {}\nTr: {}\n", row(p2), row(tr))).unwrap();
+    assert_eq!(
+        read_calib(&path).unwrap(),
+        Calib::from_rows(p2, tr).unwrap()
+    );
+}

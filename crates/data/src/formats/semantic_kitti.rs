@@ -360,20 +360,53 @@ pub fn read_calib(path: &Path) -> Result<Calib, DataError> {
     Calib::from_rows(p2, tr).map_err(|detail| DataError::format(path, detail))
 }
 
+/// How far `Tr[:3,:3]·Tr[:3,:3]ᵀ` may lie from the identity (largest entry), for
+/// [`Calib::from_rows`]: rotations written with 4 significant digits pass, scales do not.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
 impl Calib {
-    /// A calibration from the 3x4 `P2` and `Tr` matrices (as `calib.txt` holds them): every value
-    /// finite and `P2[:3,:3]` invertible, or the problem in words.
+    /// A calibration from the 3x4 `P2` and `Tr` matrices (as `calib.txt` holds them), or the
+    /// problem in words. Refused, because the projection would be silently wrong:
+    /// - a value that is not finite;
+    /// - `P2[:3,:3]` that is not a pinhole intrinsic matrix `[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`
+    ///   with `fx, fy > 0` (the camera is read from `fx, fy, cx, cy` alone: a skew, a scaled or
+    ///   negated third row would be dropped);
+    /// - `Tr[:3,:3]` that is not a rotation (`Tr` moves velodyne points rigidly into the camera
+    ///   frame: a scale, a reflection or a zero block would move them elsewhere). KITTI's files
+    ///   are orthonormal to about 1e-7; up to [`ROTATION_TOLERANCE`] is accepted.
     pub fn from_rows(p2: [[f64; 4]; 3], tr: [[f64; 4]; 3]) -> Result<Calib, String> {
         if p2.iter().chain(&tr).flatten().any(|v| !v.is_finite()) {
             return Err("P2 and Tr must hold finite numbers".into());
         }
-        let k = [
-            [p2[0][0], p2[0][1], p2[0][2]],
-            [p2[1][0], p2[1][1], p2[1][2]],
-            [p2[2][0], p2[2][1], p2[2][2]],
-        ];
-        if mat3_inverse(&k).is_none() {
-            return Err("P2[:3,:3] is singular".into());
+        let (fx, fy) = (p2[0][0], p2[1][1]);
+        let scale = fx.abs().max(fy.abs());
+        let off_pinhole = [p2[0][1], p2[1][0], p2[2][0], p2[2][1]]
+            .iter()
+            .any(|v| v.abs() > 1e-6 * scale)
+            || (p2[2][2] - 1.0).abs() > 1e-6;
+        if fx <= 0.0 || fy <= 0.0 || off_pinhole {
+            let k: Vec<[f64; 3]> = p2.iter().map(|r| [r[0], r[1], r[2]]).collect();
+            return Err(format!(
+                "P2[:3,:3] must be a pinhole intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] \
+                 with fx, fy > 0, got {k:?}"
+            ));
+        }
+        let r: [[f64; 3]; 3] = std::array::from_fn(|i| [tr[i][0], tr[i][1], tr[i][2]]);
+        let dev = (0..3)
+            .flat_map(|i| (0..3).map(move |j| (i, j)))
+            .map(|(i, j)| {
+                let dot: f64 = (0..3).map(|c| r[i][c] * r[j][c]).sum();
+                (dot - f64::from(u8::from(i == j))).abs()
+            })
+            .fold(0.0, f64::max);
+        let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+        if dev > ROTATION_TOLERANCE || det <= 0.0 {
+            return Err(format!(
+                "Tr[:3,:3] must be a rotation (Tr maps velodyne points rigidly into the camera \
+                 frame), got {r:?}: R·Rᵀ differs from I by {dev:.2e}, det(R) = {det:.4}"
+            ));
         }
         Ok(Calib { p2, tr: pad44(&tr) })
     }

@@ -117,8 +117,10 @@ pub fn read_voxels(path: &Path) -> Result<VoxelFile, DataError> {
 }
 
 /// Writes `file` to `path` (its kind must match the name), creating the folder; atomically (a
-/// temporary name beside it, renamed when complete). Values the reader would reject are refused:
-/// bits other than 0/1, Occ3D classes above 17 or masks other than 0/1.
+/// temporary name beside it, renamed when complete). What the reader would reject or read
+/// differently is refused: bits other than 0/1, Occ3D classes above 17 or masks other than 0/1,
+/// and a SemanticKITTI grid other than the one [`kitti_grid_for`] finds for the file's size (the
+/// file stores no shape: a transposed `[Z, Y, X]` array would be read back as `[X, Y, Z]`).
 pub fn write_voxels(path: &Path, file: &VoxelFile) -> Result<(), DataError> {
     let kind = VoxelFileKind::of(path)?;
     let want = match file {
@@ -143,12 +145,32 @@ pub fn write_voxels(path: &Path, file: &VoxelFile) -> Result<(), DataError> {
         }
         Ok(())
     };
+    let check_read_back = |grid: &VoxelGrid| {
+        let n = grid.num_voxels();
+        let known = kitti_grid_for(path, n).ok().map(|g| g.dims);
+        if known == Some(grid.dims) {
+            return Ok(());
+        }
+        let read_as = match known {
+            Some(dims) => format!("would be read back as {dims:?}"),
+            None => "match no grid the reader knows (256x256x32 or /2, /4, or the grid of a \
+                     synthetic.json above the file)"
+                .to_string(),
+        };
+        Err(DataError::InvalidArgument(format!(
+            "{}: a SemanticKITTI voxel file stores no shape, and the {n} values of a {:?} array \
+             {read_as}; the layout is [X, Y, Z]",
+            path.display(),
+            grid.dims
+        )))
+    };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
     }
     match file {
         VoxelFile::KittiLabel { raw, grid } => {
             check_len(raw.len(), grid)?;
+            check_read_back(grid)?;
             sk::write_label_raw(path, raw)
         }
         VoxelFile::KittiBits { bits, grid } => {
@@ -159,6 +181,7 @@ pub fn write_voxels(path: &Path, file: &VoxelFile) -> Result<(), DataError> {
                     path.display()
                 )));
             }
+            check_read_back(grid)?;
             sk::write_packed_bits(path, bits)
         }
         VoxelFile::Occ3d(l) => {
@@ -239,6 +262,34 @@ mod tests {
         l.semantics[3] = 0;
         l.mask_camera[1] = 5;
         assert!(write_voxels(&d.join("labels.npz"), &VoxelFile::Occ3d(l)).is_err());
+        // A SemanticKITTI file stores no shape: an array the reader would take for another grid
+        // (transposed), or for none, is refused.
+        let [x, y, z] = grid.dims;
+        for dims in [[z, y, x], [3, 3, 3]] {
+            let other = VoxelGrid { dims, ..grid };
+            let n = other.num_voxels();
+            for file in [
+                VoxelFile::KittiLabel {
+                    raw: vec![0; n],
+                    grid: other,
+                },
+                VoxelFile::KittiBits {
+                    bits: vec![0; n],
+                    grid: other,
+                },
+            ] {
+                let p = d.join(if matches!(file, VoxelFile::KittiLabel { .. }) {
+                    "y.label"
+                } else {
+                    "y.invalid"
+                });
+                let e = write_voxels(&p, &file).unwrap_err().to_string();
+                assert!(
+                    e.contains("stores no shape") && e.contains(&format!("{dims:?}")),
+                    "{e}"
+                );
+            }
+        }
         // Name and data disagree; unknown names.
         let e = write_voxels(
             &d.join("x.label"),
