@@ -36,8 +36,8 @@ pub struct BenchArgs {
         default_value = "sparseocc++,sparseocc,dense"
     )]
     pub models: Vec<ModelArg>,
-    /// Timed frames per model (after the warm-up).
-    #[arg(long, default_value_t = 5)]
+    /// Timed frames per model (after the warm-up), at least 1.
+    #[arg(long, default_value_t = 5, value_parser = crate::util::at_least(1))]
     pub frames: usize,
     /// Warm-up frames (not timed); 2 on the cubecl backends, whose second pass over a frame can
     /// still compile kernels (burn-fusion runs its stored plans from then on).
@@ -49,14 +49,14 @@ pub struct BenchArgs {
     /// Also scan peak memory against grid scale 1/4, 1/2, 1; writes PREFIX.json and PREFIX.png.
     #[arg(long)]
     pub scan: Option<PathBuf>,
-    /// Frames per point of the scan.
-    #[arg(long, default_value_t = 1)]
+    /// Frames per point of the scan, at least 1.
+    #[arg(long, default_value_t = 1, value_parser = crate::util::at_least(1))]
     pub scan_frames: usize,
     /// Internal: run one model in this process and print its JSON.
     #[arg(long, hide = true)]
     pub single: bool,
     /// Internal: divide the grid by this factor.
-    #[arg(long, hide = true, default_value_t = 1)]
+    #[arg(long, hide = true, default_value_t = 1, value_parser = crate::util::at_least(1))]
     pub grid_divisor: usize,
     /// Internal: the synthetic dataset to read (made by the parent).
     #[arg(long, hide = true)]

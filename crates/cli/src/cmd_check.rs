@@ -62,8 +62,8 @@ type Cpu = NdArray<f32>;
 /// Arguments of `sparseocc check-backend`.
 #[derive(clap::Args, Debug)]
 pub struct CheckArgs {
-    /// Relative tolerance (max |a - b| / max |b|).
-    #[arg(long, default_value_t = 1e-3)]
+    /// Relative tolerance (max |a - b| / max |b|), a finite number above 0.
+    #[arg(long, default_value_t = 1e-3, value_parser = crate::util::positive_finite)]
     pub tol: f64,
     /// Write the results as JSON here.
     #[arg(long)]
@@ -73,9 +73,9 @@ pub struct CheckArgs {
     /// count measured so far, so that only a regression beyond it fails.
     #[arg(long, default_value_t = 0)]
     pub max_compiles_after_warmup: u64,
-    /// Frames of the compile count (the first warms up; `compiles_after_warmup` is the second's
-    /// count, `compiles_per_frame` lists every one after the first).
-    #[arg(long, default_value_t = 2)]
+    /// Frames of the compile count, at least 2 (the first warms up; `compiles_after_warmup` is
+    /// the second's count, `compiles_per_frame` lists every one after the first).
+    #[arg(long, default_value_t = 2, value_parser = crate::util::at_least(2))]
     pub frames: usize,
     /// Run the compile count alone (no comparison with the reference).
     #[arg(long)]

@@ -54,6 +54,24 @@ impl ModelArg {
     }
 }
 
+/// A clap parser of a count that must be at least `min`: `bench --frames 0` timed one frame
+/// anyway, `check-backend --frames 1` tested no frame after the warm-up and passed.
+pub fn at_least(min: u64) -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(min..)
+}
+
+/// A clap parser of a finite number above 0 (a NaN tolerance passes every comparison).
+pub fn positive_finite(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|e| format!("`{s}` is not a number: {e}"))?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v} is not a finite number above 0"))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::ModelArg;

@@ -248,6 +248,12 @@ fn bad_input_table() {
             want,
             absent: vec![absent],
         };
+    // A command line that clap refuses (status 2), naming `want`.
+    let usage =
+        |name: &'static str, args: Vec<OsString>, want: Vec<String>, absent: PathBuf| Case {
+            status: 2,
+            ..fails(name, args, want, absent)
+        };
     // `infer` with random weights, `input` and `--out out/o`.
     let infer = |input: &[&dyn AsRef<OsStr>], o: &str| {
         let mut args = os(&[&"infer", &"--config", &cfg, &"--random-weights"]);
@@ -641,6 +647,46 @@ fn bad_input_table() {
             want: vec![s("bad.json")],
             absent: vec![],
         },
+        // Options that would make a check or a benchmark vacuous: a usage error (status 2) naming
+        // the option, before anything runs.
+        usage(
+            "check-backend with a NaN tolerance",
+            os(&[
+                &"check-backend",
+                &"--tol",
+                &"nan",
+                &"--json",
+                &out.join("cb1.json"),
+            ]),
+            vec![s("--tol"), s("finite number above 0")],
+            out.join("cb1.json"),
+        ),
+        usage(
+            "check-backend counting compiles of no frame after the warm-up",
+            os(&[
+                &"check-backend",
+                &"--frames",
+                &"1",
+                &"--json",
+                &out.join("cb2.json"),
+            ]),
+            vec![s("--frames"), s("2..")],
+            out.join("cb2.json"),
+        ),
+        usage(
+            "bench of 0 frames",
+            os(&[
+                &"bench",
+                &"--config",
+                &cfg,
+                &"--frames",
+                &"0",
+                &"--json",
+                &out.join("b1.json"),
+            ]),
+            vec![s("--frames"), s("1..")],
+            out.join("b1.json"),
+        ),
         // Good input still works, written to a path with spaces and non-UTF-8 bytes.
         Case {
             name: "eval to an odd path",
