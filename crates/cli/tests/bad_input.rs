@@ -248,11 +248,24 @@ fn bad_input_table() {
             want,
             absent: vec![absent],
         };
-    // A command line that clap refuses (status 2), naming `want`.
-    let usage =
-        |name: &'static str, args: Vec<OsString>, want: Vec<String>, absent: PathBuf| Case {
+    // A command line that clap refuses (status 2), naming `want`; its `--json out/json` is not
+    // written.
+    let usage = |name: &'static str, args: &[&dyn AsRef<OsStr>], want: Vec<String>, json: &str| {
+        let mut args = os(args);
+        args.extend(os(&[&"--json", &out.join(json)]));
+        Case {
             status: 2,
-            ..fails(name, args, want, absent)
+            ..fails(name, args, want, out.join(json))
+        }
+    };
+    // `train --config cfg --data d --out out/o` and `extra`, refused before anything is written
+    // into the run folder.
+    let train_data =
+        |name: &'static str, d: &Path, extra: &[&dyn AsRef<OsStr>], want: Vec<String>, o: &str| {
+            let run = out.join(o);
+            let mut args = os(&[&"train", &"--config", &cfg, &"--data", &d, &"--out", &run]);
+            args.extend(os(extra));
+            fails(name, args, want, run)
         };
     // `infer` with random weights, `input` and `--out out/o`.
     let infer = |input: &[&dyn AsRef<OsStr>], o: &str| {
@@ -495,83 +508,36 @@ fn bad_input_table() {
             vec![s("small.png"), s("calibration")],
             "v2.png",
         ),
-        Case {
-            name: "train on a dataset with a huge image",
-            args: os(&[
-                &"train",
-                &"--config",
-                &cfg,
-                &"--data",
-                &data_huge,
-                &"--out",
-                &out.join("t_huge"),
-                &"--sequences",
-                &"08",
-            ]),
-            status: 1,
-            want: vec![s("000000.png"), s("100000x100000")],
-            // Found by the check of every frame before the first step: nothing is written.
-            absent: vec![out.join("t_huge")],
-        },
-        // Every training and validation frame is checked before the first step: a truncated label
-        // of the validation street stops the run before anything is written.
-        Case {
-            name: "train with a truncated validation label",
-            args: os(&[
-                &"train",
-                &"--config",
-                &cfg,
-                &"--data",
-                &data_trunc,
-                &"--out",
-                &out.join("t_trunc"),
-                &"--sequences",
-                &"00",
-                &"--val-sequences",
-                &"08",
-            ]),
-            status: 1,
-            want: vec![s("08/voxels/000000.label"), s("bytes")],
-            absent: vec![out.join("t_trunc")],
-        },
-        Case {
-            name: "train with a truncated validation image",
-            args: os(&[
-                &"train",
-                &"--config",
-                &cfg,
-                &"--data",
-                &data_cut_img,
-                &"--out",
-                &out.join("t_cut_img"),
-                &"--sequences",
-                &"00",
-                &"--val-sequences",
-                &"08",
-            ]),
-            status: 1,
-            want: vec![s("08/image_2/000000.png"), s("truncated")],
-            absent: vec![out.join("t_cut_img")],
-        },
-        Case {
-            name: "train on a labelled frame without its .invalid",
-            args: os(&[
-                &"train",
-                &"--config",
-                &cfg,
-                &"--data",
-                &data_no_invalid,
-                &"--out",
-                &out.join("t_no_invalid"),
-                &"--sequences",
-                &"00",
-                &"--val-sequences",
-                &"",
-            ]),
-            status: 1,
-            want: vec![s("00/voxels/000000.invalid"), s("missing")],
-            absent: vec![out.join("t_no_invalid")],
-        },
+        // Every training and validation frame is checked before the first step: nothing is
+        // written.
+        train_data(
+            "train on a dataset with a huge image",
+            &data_huge,
+            &[&"--sequences", &"08"],
+            vec![s("000000.png"), s("100000x100000")],
+            "t_huge",
+        ),
+        train_data(
+            "train with a truncated validation label",
+            &data_trunc,
+            &[&"--sequences", &"00", &"--val-sequences", &"08"],
+            vec![s("08/voxels/000000.label"), s("bytes")],
+            "t_trunc",
+        ),
+        train_data(
+            "train with a truncated validation image",
+            &data_cut_img,
+            &[&"--sequences", &"00", &"--val-sequences", &"08"],
+            vec![s("08/image_2/000000.png"), s("truncated")],
+            "t_cut_img",
+        ),
+        train_data(
+            "train on a labelled frame without its .invalid",
+            &data_no_invalid,
+            &[&"--sequences", &"00", &"--val-sequences", &""],
+            vec![s("00/voxels/000000.invalid"), s("missing")],
+            "t_no_invalid",
+        ),
         infer_img(
             "infer --image with a JPEG cut in half",
             &cut_jpeg,
@@ -651,41 +617,21 @@ fn bad_input_table() {
         // the option, before anything runs.
         usage(
             "check-backend with a NaN tolerance",
-            os(&[
-                &"check-backend",
-                &"--tol",
-                &"nan",
-                &"--json",
-                &out.join("cb1.json"),
-            ]),
+            &[&"check-backend", &"--tol", &"nan"],
             vec![s("--tol"), s("finite number above 0")],
-            out.join("cb1.json"),
+            "cb1.json",
         ),
         usage(
             "check-backend counting compiles of no frame after the warm-up",
-            os(&[
-                &"check-backend",
-                &"--frames",
-                &"1",
-                &"--json",
-                &out.join("cb2.json"),
-            ]),
+            &[&"check-backend", &"--frames", &"1"],
             vec![s("--frames"), s("2..")],
-            out.join("cb2.json"),
+            "cb2.json",
         ),
         usage(
             "bench of 0 frames",
-            os(&[
-                &"bench",
-                &"--config",
-                &cfg,
-                &"--frames",
-                &"0",
-                &"--json",
-                &out.join("b1.json"),
-            ]),
+            &[&"bench", &"--config", &cfg, &"--frames", &"0"],
             vec![s("--frames"), s("1..")],
-            out.join("b1.json"),
+            "b1.json",
         ),
         // Good input still works, written to a path with spaces and non-UTF-8 bytes.
         Case {
