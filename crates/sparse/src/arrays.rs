@@ -99,28 +99,33 @@ pub fn conv3d_arrays(
             "channels must be positive (c_in {c_in}, c_out {c_out})"
         )));
     }
-    if feats.len() != n * c_in {
+    // Products in checked arithmetic: a wrapped product could equal the slice's length.
+    if Some(feats.len()) != n.checked_mul(c_in) {
         return Err(SparseError::Shape(format!(
             "feats has {} values, {n} sites x {c_in} channels need {}",
             feats.len(),
-            n * c_in
+            n as u128 * c_in as u128
         )));
     }
-    let kv: usize = spec.kernel.iter().product();
-    if kv == 0 {
+    if spec.kernel.contains(&0) {
         return Err(SparseError::Config(format!(
             "kernel {:?} has a zero extent",
             spec.kernel
         )));
     }
-    if weight.len() != c_out * kv * c_in {
+    let kv = spec
+        .kernel
+        .iter()
+        .try_fold(1usize, |p, &k| p.checked_mul(k));
+    let want = kv.and_then(|kv| kv.checked_mul(c_out)?.checked_mul(c_in));
+    let Some(kv) = kv.filter(|_| want == Some(weight.len())) else {
         return Err(SparseError::WeightLayout {
             cout: c_out,
             kernel: spec.kernel,
             cin: c_in,
             got: vec![weight.len()],
         });
-    }
+    };
     let batch = spec.batch_size.unwrap_or_else(|| {
         coords
             .iter()

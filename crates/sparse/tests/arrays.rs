@@ -249,5 +249,10 @@ fn bad_arrays_are_errors_naming_the_problem() {
     }
     // An even submanifold kernel.
     let even = spec(ArrayConvKind::Submanifold, [2; 3], [1; 3], [0; 3]);
-    assert!(conv3d_arrays(c, &[0.0; 6], 3, &[0.0; 8 * 3 * 2], 2, &even).is_err());
+    assert!(conv3d_arrays(c.clone(), &[0.0; 6], 3, &[0.0; 8 * 3 * 2], 2, &even).is_err());
+    // Channel counts whose products wrap to the (empty) slices' lengths: 2 x 2^63 = 0 mod 2^64.
+    let e = conv3d_arrays(c.clone(), &[], 1 << 63, &[], 2, &s).unwrap_err();
+    assert!(matches!(e, SparseError::Shape(_)), "{e}");
+    let e = conv3d_arrays(c, &[0.0; 6], 3, &[], 1 << 63, &s).unwrap_err();
+    assert!(matches!(e, SparseError::WeightLayout { .. }), "{e}");
 }
