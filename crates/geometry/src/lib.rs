@@ -16,6 +16,6 @@ pub use camera::{
 };
 pub use grid::{flip_grid, VoxelGrid};
 pub use mat::{
-    mat3_identity, mat3_inverse, mat3_mul, mat4_from_quat_translation, mat4_identity, mat4_inverse,
-    mat4_mul, quat_from_mat4, transform_point, Mat3, Mat4,
+    mat3_det, mat3_identity, mat3_inverse, mat3_mul, mat4_from_quat_translation, mat4_identity,
+    mat4_inverse, mat4_mul, quat_from_mat4, transform_point, Mat3, Mat4,
 };

@@ -95,11 +95,16 @@ pub fn mat3_mul(a: &Mat3, b: &Mat3) -> Mat3 {
     out
 }
 
+/// Determinant of a 3x3 matrix (cofactor expansion along the first row).
+pub fn mat3_det(m: &Mat3) -> f64 {
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+}
+
 /// 3x3 inverse via the adjugate; `None` if singular (|det| <= 1e-12 · max|entry|³) or non-finite.
 pub fn mat3_inverse(m: &Mat3) -> Option<Mat3> {
-    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    let det = mat3_det(m);
     let scale = m
         .iter()
         .flat_map(|r| r.iter())

@@ -13,7 +13,8 @@ use super::npy::{read_npy, write_npy, NpyValues};
 use crate::error::DataError;
 pub use crate::labels::{downsample_labels, LearningMap};
 use occ_geometry::{
-    mat3_inverse, mat4_identity, mat4_mul, CameraView, Mat4, PinholeCamera, VoxelGrid,
+    mat3_det, mat3_identity, mat3_inverse, mat3_mul, mat4_identity, mat4_mul, CameraView, Mat4,
+    PinholeCamera, VoxelGrid,
 };
 use occ_labels::IGNORE;
 use std::path::{Path, PathBuf};
@@ -392,16 +393,12 @@ impl Calib {
             ));
         }
         let r: [[f64; 3]; 3] = std::array::from_fn(|i| [tr[i][0], tr[i][1], tr[i][2]]);
-        let dev = (0..3)
-            .flat_map(|i| (0..3).map(move |j| (i, j)))
-            .map(|(i, j)| {
-                let dot: f64 = (0..3).map(|c| r[i][c] * r[j][c]).sum();
-                (dot - f64::from(u8::from(i == j))).abs()
-            })
+        let rt: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| r[j][i]));
+        let (rrt, id) = (mat3_mul(&r, &rt), mat3_identity());
+        let dev = (0..9)
+            .map(|k| (rrt[k / 3][k % 3] - id[k / 3][k % 3]).abs())
             .fold(0.0, f64::max);
-        let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
-            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+        let det = mat3_det(&r);
         if dev > ROTATION_TOLERANCE || det <= 0.0 {
             return Err(format!(
                 "Tr[:3,:3] must be a rotation (Tr maps velodyne points rigidly into the camera \
